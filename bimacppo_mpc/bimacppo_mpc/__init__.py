@@ -1,0 +1,3 @@
+"""bimacppo_mpc: see package.xml for what it holds. Core modules never import rclpy."""
+
+__version__ = "0.1.0"
