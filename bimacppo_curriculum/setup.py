@@ -31,6 +31,7 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
+            "curriculum_node = bimacppo_curriculum.ros.curriculum_node:main",
         ],
     },
 )

@@ -31,6 +31,7 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
+            "controller_node = bimacppo_mpc.ros.controller_node:main",
             "bimacppo-mpc-bench = bimacppo_mpc.bench:main",
         ],
     },

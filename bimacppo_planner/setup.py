@@ -31,6 +31,10 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
+            "planner_node = bimacppo_planner.ros.planner_node:main",
+            "bimacppo-graph = bimacppo_planner.ros.graph:main",
+            "bimacppo-train = bimacppo_planner.cli:train_main",
+            "bimacppo-evaluate = bimacppo_planner.cli:evaluate_main",
         ],
     },
 )

@@ -31,6 +31,9 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
+            "world_node = bimacppo_sim.ros.world_node:main",
+            "mcap_recorder = bimacppo_sim.ros.recorder:main",
+            "mcap_player = bimacppo_sim.ros.player:main",
             "bimacppo-sim = bimacppo_sim.cli:main",
         ],
     },
