@@ -22,7 +22,7 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 PIP=("$VENV/bin/python" -m pip --disable-pip-version-check)
 stamp="$VENV/.bimacppo-lock.sha256"
-want="$(cat "$ROOT/requirements.lock" "$ROOT"/bimacppo_*/setup.py | sha256sum | cut -d' ' -f1)"
+want="$(cat "$ROOT/requirements.lock" "$ROOT"/bimacppo_*/setup.py "$ROOT/scripts/install.sh" | sha256sum | cut -d' ' -f1)"
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
   echo ">> environment up to date ($VENV)"
 else
@@ -30,7 +30,9 @@ else
   "${PIP[@]}" install -q --upgrade "pip>=24" "setuptools==79.0.1" wheel
   "${PIP[@]}" install -q -r "$ROOT/requirements.lock"
   echo ">> installing bimacppo packages (editable)"
-  "${PIP[@]}" install -q --no-deps --no-build-isolation \
+  # compat mode = a .pth path entry per package: the repo root also holds same-named
+  # ROS package folders, which an import-hook editable install would lose to.
+  "${PIP[@]}" install -q --no-deps --no-build-isolation --config-settings editable_mode=compat \
     -e "$ROOT/bimacppo_sim" -e "$ROOT/bimacppo_mpc" \
     -e "$ROOT/bimacppo_curriculum" -e "$ROOT/bimacppo_planner"
   echo "$want" > "$stamp"

@@ -1,0 +1,104 @@
+"""Observation (eq. 18-20) and action decoding (§III-C) on plain arrays."""
+import math
+
+import numpy as np
+import pytest
+
+from bimacppo_planner.decision import (ConfigError, EnvConfig, ObservationConfig, WaypointTracker,
+                                       decode_action, observe, wrap_angle)
+
+
+def test_wrap_angle_stays_in_half_open_interval():
+    for a in np.linspace(-20, 20, 401):
+        w = wrap_angle(float(a))
+        assert -math.pi < w <= math.pi + 1e-12
+        assert math.isclose(math.sin(w), math.sin(a), abs_tol=1e-9)
+        assert math.isclose(math.cos(w), math.cos(a), abs_tol=1e-9)
+    assert wrap_angle(math.pi) == pytest.approx(math.pi)
+    assert wrap_angle(-math.pi) == pytest.approx(math.pi)
+
+
+def test_observation_follows_eq_18_to_20():
+    cfg = ObservationConfig(max_sv=3, sv_clip=7.5)
+    ego = np.array([1.0, -20.0, 5.0, math.pi / 2])
+    goal = np.array([-30.0, 5.0, math.pi])
+    svs = np.array([[3.0, -18.0, 7.0, -math.pi / 2],     # near: dx=2, dy=2
+                    [40.0, 0.0, 0.0, 3.0]])               # far: clipped
+    o = observe(cfg, ego, goal, svs)
+    assert o.shape == (16,) and o.dtype == np.float32
+    np.testing.assert_allclose(o[:4], [31.0, 25.0, 5.0, wrap_angle(math.pi / 2 - math.pi)], rtol=1e-6)
+    np.testing.assert_allclose(o[4:8], [2.0, 2.0, -2.0, wrap_angle(math.pi)], rtol=1e-6)
+    np.testing.assert_allclose(o[8:12], [7.5, 7.5, 5.0, wrap_angle(math.pi / 2 - 3.0)], rtol=1e-6)
+    np.testing.assert_allclose(o[12:16], cfg.pad_value)
+
+
+def test_observation_sorts_svs_nearest_first_and_drops_extra():
+    cfg = ObservationConfig(max_sv=1)
+    ego = np.zeros(4)
+    svs = np.array([[5.0, 0.0, 1.0, 0.0], [1.0, 1.0, 2.0, 0.0]])
+    o = observe(cfg, ego, np.zeros(3), svs)
+    assert o.shape == (8,)
+    assert o[4] == pytest.approx(1.0) and o[6] == pytest.approx(-2.0)
+
+
+def _straight_route(n=20, spacing=3.0):
+    ys = np.arange(n) * spacing
+    return np.stack([np.zeros(n), ys, np.full(n, math.pi / 2)], axis=1)
+
+
+def test_tracker_drops_waypoints_behind_and_offers_next_five():
+    tr = WaypointTracker(_straight_route(), 5)
+    tr.update(0.0, 7.0)
+    c = tr.candidates()
+    np.testing.assert_allclose(c[:, 1], [9, 12, 15, 18, 21])
+    tr.update(0.0, 0.0)   # going back does not resurrect passed waypoints
+    np.testing.assert_allclose(tr.candidates()[0, 1], 9)
+    tr.update(0.0, 100.0)  # past the end: the last waypoint repeats
+    np.testing.assert_allclose(tr.candidates()[:, 1], [57] * 5)
+
+
+def test_tracker_rejects_bad_routes():
+    with pytest.raises(ValueError, match="route"):
+        WaypointTracker(np.zeros((0, 3)), 5)
+    with pytest.raises(ValueError, match="route"):
+        WaypointTracker(np.array([[0.0, np.nan, 0.0]]), 5)
+
+
+def test_decode_action_speed_waypoint_and_lane_change():
+    cfg = EnvConfig.load().action
+    tr = WaypointTracker(_straight_route(), cfg.n_waypoints)
+    tr.update(0.0, 0.5)
+
+    def lateral(x, y, psi, side):
+        return (x - 3.5 * side * math.sin(psi + math.pi), y, psi) if side == -1 else None
+
+    x, changed = decode_action([2, 4, 1], tr, cfg, lateral)
+    np.testing.assert_allclose(x, [0.0, 9.0, 8.0, math.pi / 2])
+    assert not changed
+    x, changed = decode_action([0, 0, 0], tr, cfg, lateral)   # left: the adjacent lane exists
+    assert changed and x[2] == 0.0 and x[1] == pytest.approx(3.0) and x[0] != 0.0
+    x, changed = decode_action([0, 0, 2], tr, cfg, lateral)   # right: no lane there -> keep
+    assert not changed and x[0] == 0.0
+    with pytest.raises(ValueError, match="outside"):
+        decode_action([5, 0, 0], tr, cfg, lateral)
+
+
+def test_env_config_defaults_and_errors(tmp_path):
+    cfg = EnvConfig.load()
+    assert cfg.nvec == (5, 5, 3)
+    assert cfg.action.speeds == (0.0, 2.0, 4.0, 6.0, 8.0)
+    assert cfg.obs_dim == 16
+    assert EnvConfig.from_dict(cfg.to_dict()) == cfg
+    bad = tmp_path / "env.yaml"
+    bad.write_text("reward:\n  alpah1: 3\n")
+    with pytest.raises(ConfigError, match=r"reward\.alpah1"):
+        EnvConfig.load(bad)
+    bad.write_text("reward: [1, 2\n")
+    with pytest.raises(ConfigError, match="YAML"):
+        EnvConfig.load(bad)
+    bad.write_text("action:\n  speeds: [0, .nan]\n")
+    with pytest.raises(ConfigError, match="speeds"):
+        EnvConfig.load(bad)
+    with pytest.raises(ConfigError, match="cannot read"):
+        EnvConfig.load(tmp_path / "missing.yaml")
+    assert EnvConfig.load(overrides={"reward.step": -0.5}).reward.step == -0.5
