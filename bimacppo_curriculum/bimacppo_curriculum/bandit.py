@@ -86,23 +86,41 @@ class Exp3SLevel:
         self.w0, self.eta, self.alpha, self.beta = float(w0), float(eta), float(alpha), float(beta)
         self.w = np.full((rows, k), self.w0)       # sampling weights (M)
         self.tw = np.full((rows, k), self.w0)      # target weights (M-hat)
+        self._p: np.ndarray | None = None          # cached sampling law
 
     def probs(self, target: bool = False) -> np.ndarray:
-        """Eq. (11): (1 - eta) softmax(w) + eta / k, row by row; max-subtracted for stability."""
+        """Eq. (11): (1 - eta) softmax(w) + eta / k, row by row; max-subtracted for stability.
+
+        The sampling law only changes at a sync, so it is computed once per sync (returned
+        read-only) instead of on every draw and update.
+        """
+        if not target and self._p is not None:
+            return self._p
         w = self.tw if target else self.w
         e = np.exp(w - w.max(axis=1, keepdims=True))
-        return (1.0 - self.eta) * e / e.sum(axis=1, keepdims=True) + self.eta / self.k
+        p = (1.0 - self.eta) * e / e.sum(axis=1, keepdims=True) + self.eta / self.k
+        if not target:
+            p.flags.writeable = False
+            self._p = p
+        return p
 
     def reinforce(self, row: int, col: int, r_hat: float) -> None:
-        """Eq. (16) on the target weights; every other entry gets reward 0."""
-        big_w = self.tw.sum(axis=1, keepdims=True)     # W(t), before this update
-        self.tw[row, col] += self.alpha * r_hat
-        self.tw += self.beta * big_w                    # same shift for the whole row
-        self.tw -= self.tw.mean(axis=1, keepdims=True) - self.w0   # re-centre (softmax-invariant)
+        """Eq. (16) on the target weights; every other entry gets reward 0.
+
+        Only the row holding the sampled entry is touched: in every other row eq. (16) adds
+        beta*W to each weight and the re-centring takes exactly that back out, so skipping
+        those rows is the same result without the rounding of a pointless add-and-subtract.
+        """
+        w = self.tw[row]                     # a view: edits land in self.tw
+        big_w = w.sum()                      # W(t), before this update
+        w[col] += self.alpha * r_hat
+        w += self.beta * big_w               # same shift for the whole row
+        w -= w.sum() / self.k - self.w0      # re-centre to mean w0 (softmax-invariant)
 
     def sync(self) -> None:
         """Eq. (17) / Algorithm 1 lines 11-13: copy the target into the sampling bandit."""
         self.w[...] = self.tw
+        self._p = None
 
     def state(self) -> dict:
         return {"w": self.w.tolist(), "tw": self.tw.tolist()}
@@ -120,6 +138,7 @@ class Exp3SLevel:
                 raise ValueError(f"{where}: key '{key}' must be a finite {self.rows}x{self.k} array, got shape {a.shape}")
             arrs.append(a)
         self.w, self.tw = arrs
+        self._p = None
 
 
 class _Exp3SScheduler(Scheduler):
@@ -165,8 +184,8 @@ class _Exp3SScheduler(Scheduler):
             if pi_ == i and pj_ == j:
                 del self.pending[n]
                 return p_i, p_ij
-        p_c, p_a = self.probabilities()
-        return float(p_c[i]), float(p_a[i, j])
+        p_c = self.clusters.probs()[0]
+        return float(p_c[i]), float(self.arm_probabilities()[i, j])
 
     def _update(self, i, j, r):
         p_i, p_ij = self._pop_pending(i, j)
@@ -187,8 +206,9 @@ class _Exp3SScheduler(Scheduler):
 
     def _extra_log(self):
         out = {"syncs": float(self.n_syncs), "last_r_norm": float(self.last_r_norm),
-               "r_max": float("nan") if self.rescaler.r_max is None else self.rescaler.r_max,
-               "r_min": float("nan") if self.rescaler.r_min is None else self.rescaler.r_min}
+               # no history yet reads as 0: the rescaler then treats every return as r_norm = 0
+               "r_max": 0.0 if self.rescaler.r_max is None else self.rescaler.r_max,
+               "r_min": 0.0 if self.rescaler.r_min is None else self.rescaler.r_min}
         tp = self.clusters.probs(target=True)[0]
         for i in range(self.n_clusters):
             out[f"cluster_weight_{i}"] = float(self.clusters.w[0, i])
