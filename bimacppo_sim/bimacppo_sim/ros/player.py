@@ -1,0 +1,166 @@
+"""MCAP player: republishes a recording on its topics, so a recorded drive stands in for the world.
+
+Usage::
+
+    mcap_player run.mcap --ros-args -p rate:=1.0 -p topics:="['/clock','/ego/odom','/objects','/goal_pose']"
+
+``rate`` scales the recorded log-time gaps (2.0 = twice as fast); ``rate:=0.0`` publishes
+as fast as the executor allows. Each topic is re-offered with the QoS recorded in its
+channel metadata (a latched /goal_pose stays latched). A truncated or corrupt file is
+played up to its first unreadable byte and the reason is logged; a missing file or one
+without any message is a one-line error, not a traceback.
+"""
+from __future__ import annotations
+
+import os
+import time
+from typing import Dict, Optional
+
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from . import interfaces as I
+from . import mcap_io
+from .recorder import STRING_ARRAY, import_message_type
+from .runtime import run_single
+
+BATCH = 200
+"""Messages published per timer callback at most, so the executor stays responsive."""
+
+
+def offered_qos(metadata: Dict[str, str], min_depth: int) -> QoSProfile:
+    """The QoS to re-offer: the recorded publishers' (if they agree), else reliable/volatile."""
+    recs = mcap_io.qos_from_yaml(metadata.get("offered_qos_profiles", ""))
+    rel = ReliabilityPolicy.RELIABLE
+    dur = DurabilityPolicy.VOLATILE
+    depth = min_depth
+    if recs:
+        if all(r.reliability == "best_effort" for r in recs):
+            rel = ReliabilityPolicy.BEST_EFFORT
+        if all(r.durability == "transient_local" for r in recs):
+            dur = DurabilityPolicy.TRANSIENT_LOCAL
+            depth = max(1, max(r.depth for r in recs))
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=rel, durability=dur)
+
+
+class McapPlayer(Node):
+    """Publishes the messages of one MCAP file at recorded timing (scaled by ``rate``)."""
+
+    def __init__(self, path: Optional[str] = None, **kwargs) -> None:
+        super().__init__(I.PLAYER_NODE, **kwargs)
+        self.declare_parameter("path", "")
+        self.declare_parameter("rate", 1.0)
+        self.declare_parameter("start_delay_s", 1.0)
+        self.declare_parameter("topics", [], STRING_ARRAY)
+        self.declare_parameter("exclude", [], STRING_ARRAY)
+        self.declare_parameter("queue_depth", 100)
+        self.declare_parameter("period_s", 0.002)
+        self.declare_parameter("linger_s", 1.0)
+        p = self.get_parameter
+        self.path = path or p("path").value
+        if not self.path:
+            raise ValueError("mcap_player: no file given (positional argument or -p path:=FILE.mcap)")
+        if not os.path.isfile(self.path):
+            raise FileNotFoundError(f"mcap_player: no such file: {self.path}")
+        self.rate = float(p("rate").value)
+        if not self.rate >= 0.0:
+            raise ValueError(f"mcap_player: rate must be >= 0 (0 = as fast as possible), got {self.rate}")
+        self.topics = set(p("topics").value)
+        self.exclude = set(p("exclude").value)
+        self.depth = int(p("queue_depth").value)
+        self.linger_s = float(p("linger_s").value)
+        # a first pass finds every channel, so all publishers exist (and get matched during
+        # start_delay_s) before the first message goes out: nothing early is lost
+        self._pubs: Dict[int, object] = {}
+        scan = mcap_io.ReadReport()
+        for schema, channel, _ in mcap_io.iter_mcap(self.path, scan, topics=self.topics or None):
+            if channel.id not in self._pubs and channel.topic not in self.exclude:
+                self._publisher(schema, channel)
+        self.report = mcap_io.ReadReport()
+        self._it = mcap_io.iter_mcap(self.path, self.report, topics=self.topics or None)
+        self._finished_at: Optional[float] = None
+        self._pending = None
+        self._t0_log: Optional[int] = None
+        self._t0_wall: Optional[float] = None
+        self._start_at = time.monotonic() + float(p("start_delay_s").value)
+        self.published = 0
+        self.done = False
+        self.exit_code = 0
+        self._timer = self.create_timer(float(p("period_s").value), self._tick,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _publisher(self, schema, channel):
+        if channel.id in self._pubs:
+            return self._pubs[channel.id]
+        pub = None
+        if schema is None or channel.message_encoding != mcap_io.MESSAGE_ENCODING:
+            self.get_logger().warning(f"{channel.topic}: encoding {channel.message_encoding!r} "
+                                      "is not ROS 2 CDR, skipped")
+        else:
+            try:
+                cls = import_message_type(schema.name)
+                pub = self.create_publisher(cls, channel.topic, offered_qos(channel.metadata, self.depth))
+            except (LookupError, mcap_io.DefinitionNotFound) as exc:
+                self.get_logger().warning(f"{channel.topic}: skipped ({exc})")
+        self._pubs[channel.id] = pub
+        return pub
+
+    def _next(self):
+        if self._pending is None:
+            try:
+                self._pending = next(self._it)
+            except StopIteration:
+                self._pending = None
+        return self._pending
+
+    def _tick(self) -> None:
+        if self._finished_at is not None:
+            # linger: late (transient_local) readers and reliable resends still get served
+            self.done = time.monotonic() >= self._finished_at + self.linger_s
+            return
+        if time.monotonic() < self._start_at:
+            return
+        for _ in range(BATCH):
+            item = self._next()
+            if item is None:
+                self._finish()
+                return
+            schema, channel, msg = item
+            if channel.topic in self.exclude:
+                self._pending = None
+                continue
+            if self._t0_log is None:
+                self._t0_log, self._t0_wall = msg.log_time, time.monotonic()
+            if self.rate > 0.0:
+                due = self._t0_wall + (msg.log_time - self._t0_log) * 1e-9 / self.rate
+                if time.monotonic() < due:
+                    return
+            pub = self._publisher(schema, channel)
+            if pub is not None:
+                pub.publish(bytes(msg.data))
+                self.published += 1
+            self._pending = None
+
+    def _finish(self) -> None:
+        self._finished_at = time.monotonic()
+        if self.published == 0 and not self.report.complete:
+            self.get_logger().error(f"nothing playable in {self.path}: {self.report.error}")
+            self.exit_code = 1
+        elif not self.report.complete:
+            self.get_logger().warning(f"{self.path} is damaged; played the {self.published} readable "
+                                      f"messages ({self.report.error})")
+        else:
+            self.get_logger().info(f"played {self.published} messages from {self.path}")
+
+
+def main(argv=None) -> int:
+    def make(args):
+        if len(args) > 1:
+            raise ValueError(f"usage: mcap_player [FILE.mcap] [--ros-args ...] (got {args})")
+        return McapPlayer(path=args[0] if args else None)
+    return run_single(make, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

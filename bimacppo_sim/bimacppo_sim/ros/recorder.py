@@ -1,0 +1,196 @@
+"""MCAP recorder: every topic of the graph, raw CDR, rosbag2-compatible (``ros2 bag`` / Foxglove).
+
+Usage::
+
+    mcap_recorder --ros-args -p output:=run.mcap            # or: mcap_recorder run.mcap
+
+Topics are (re)discovered every ``discovery_period_s``; a topic is subscribed once a
+publisher exists, with the QoS rosbag2 would request (reliable / transient_local only
+if every publisher offers it), so latched topics such as /goal_pose are captured too.
+
+Crash safety: messages go into chunks of about ``chunk_size`` bytes; a full chunk is
+written and handed to the OS at once, and a partial chunk is written at least every
+``flush_period_s``. A ``kill -9`` therefore loses at most the last chunk / flush
+period; the file has no summary then, and ``mcap_io.iter_mcap`` (or any reader that
+scans records) still reads it. SIGINT/SIGTERM drain pending callbacks and write the
+summary: nothing received is lost.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import threading
+import time
+from datetime import datetime
+from typing import Dict, List
+
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from . import interfaces as I
+from . import mcap_io
+from .runtime import run_single
+
+STRING_ARRAY = ParameterDescriptor(type=ParameterType.PARAMETER_STRING_ARRAY)
+
+
+def import_message_type(type_name: str):
+    """``pkg/msg/Type`` -> the generated Python class (LookupError if not installed)."""
+    pkg, ns, name = mcap_io.split_type(type_name)
+    try:
+        return getattr(importlib.import_module(f"{pkg}.{ns}"), name)
+    except (ImportError, AttributeError) as exc:
+        raise LookupError(f"message type {type_name} is not importable here ({exc})") from None
+
+
+def _policy_name(p) -> str:
+    return str(getattr(p, "name", p)).lower()
+
+
+def _qos_record(profile) -> mcap_io.QosRecord:
+    def ns(d):
+        return getattr(d, "nanoseconds", None)
+    return mcap_io.QosRecord(
+        history=_policy_name(profile.history), depth=int(profile.depth),
+        reliability=_policy_name(profile.reliability), durability=_policy_name(profile.durability),
+        deadline_ns=ns(profile.deadline), lifespan_ns=ns(profile.lifespan),
+        liveliness=_policy_name(profile.liveliness),
+        liveliness_lease_ns=ns(profile.liveliness_lease_duration),
+        avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+
+
+def adapted_request(records: List[mcap_io.QosRecord], depth: int) -> QoSProfile:
+    """rosbag2's ``adapt_request_to_offers``: strongest policy that matches every publisher."""
+    reliable = bool(records) and all(r.reliability == "reliable" for r in records)
+    latched = bool(records) and all(r.durability == "transient_local" for r in records)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+class McapRecorder(Node):
+    """Records raw CDR of every (selected) topic into one MCAP file."""
+
+    def __init__(self, output: str | None = None, **kwargs) -> None:
+        super().__init__(I.RECORDER_NODE, **kwargs)
+        self.declare_parameter("output", "")
+        self.declare_parameter("discovery_period_s", 0.5)
+        self.declare_parameter("chunk_size", 65536)
+        self.declare_parameter("flush_period_s", 1.0)
+        self.declare_parameter("compression", "zstd")
+        self.declare_parameter("topics", [], STRING_ARRAY)
+        self.declare_parameter("exclude", [], STRING_ARRAY)
+        self.declare_parameter("queue_depth", 100)
+        p = self.get_parameter
+        path = output or p("output").value or datetime.now().strftime("bimacppo_%Y%m%d_%H%M%S.mcap")
+        self.path = os.path.abspath(path)
+        self.topics = {t for t in p("topics").value if t}
+        self.exclude = {t for t in p("exclude").value if t}
+        self.depth = int(p("queue_depth").value)
+        chunk = int(p("chunk_size").value)
+        if chunk <= 0 or self.depth <= 0:
+            raise ValueError("mcap_recorder: chunk_size and queue_depth must be > 0")
+        os.makedirs(os.path.dirname(self.path) or ".", exist_ok=True)
+        self._writer, self._file = mcap_io.open_writer(self.path, chunk, str(p("compression").value))
+        self._writer.add_metadata("rosbag2", {"ros_distro": "jazzy"})
+        self._lock = threading.Lock()
+        self._schemas: Dict[str, int] = {}
+        self._channels: Dict[str, int] = {}
+        self._subs = {}
+        self._seq: Dict[int, int] = {}
+        self.counts: Dict[str, int] = {}
+        self._closed = False
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(float(p("discovery_period_s").value), self.discover, clock=steady)
+        self.create_timer(float(p("flush_period_s").value), self.flush, clock=steady)
+        self.discover()
+        self.get_logger().info(f"recording to {self.path}")
+
+    # ------------------------------------------------------------------ discovery
+    def _selected(self, topic: str) -> bool:
+        if topic in self.exclude:
+            return False
+        return not self.topics or topic in self.topics
+
+    def discover(self) -> None:
+        """Subscribe to every new topic that has a publisher (called by a timer, or directly)."""
+        if self._closed:
+            return
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._subs or not self._selected(topic):
+                continue
+            if len(types) != 1:
+                self.get_logger().warning(f"{topic}: several types {types}, not recorded", once=True)
+                continue
+            infos = self.get_publishers_info_by_topic(topic)
+            if not infos:
+                continue
+            try:
+                self._subscribe(topic, types[0], infos)
+            except (LookupError, mcap_io.DefinitionNotFound) as exc:
+                self.get_logger().warning(f"{topic}: not recorded: {exc}")
+                self._subs[topic] = None
+
+    def _subscribe(self, topic: str, type_name: str, infos) -> None:
+        msg_cls = import_message_type(type_name)
+        records = [_qos_record(i.qos_profile) for i in infos]
+        with self._lock:
+            if type_name not in self._schemas:
+                text = mcap_io.full_definition(type_name)
+                self._schemas[type_name] = self._writer.register_schema(
+                    type_name, mcap_io.SCHEMA_ENCODING, text.encode())
+            meta = {"offered_qos_profiles": mcap_io.qos_to_yaml(records)}
+            h = getattr(infos[0], "topic_type_hash", None)
+            if h is not None and str(h):
+                meta["topic_type_hash"] = str(h)
+            cid = self._writer.register_channel(topic, mcap_io.MESSAGE_ENCODING,
+                                                self._schemas[type_name], meta)
+            self._channels[topic] = cid
+        self._subs[topic] = self.create_subscription(
+            msg_cls, topic, lambda data, c=cid, t=topic: self._on_message(c, t, data),
+            adapted_request(records, self.depth), raw=True)
+        self.get_logger().debug(f"recording {topic} [{type_name}]")
+
+    # ------------------------------------------------------------------ writing
+    def _on_message(self, channel_id: int, topic: str, data: bytes) -> None:
+        t = time.time_ns()
+        with self._lock:
+            if self._closed:
+                return
+            seq = self._seq.get(channel_id, 0)
+            self._seq[channel_id] = seq + 1
+            self._writer.add_message(channel_id=channel_id, log_time=t, data=bytes(data),
+                                     publish_time=t, sequence=seq)
+            self._file.flush()  # a chunk the writer just completed goes to the OS now
+            self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def flush(self) -> None:
+        """Close the open chunk (if any) and hand it to the OS: bounds what a kill can lose."""
+        with self._lock:
+            if not self._closed:
+                self._writer.flush()
+
+    def close(self) -> None:
+        """Write the summary (indexes, statistics) and close the file; idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._writer.finish()
+            self._file.close()
+        total = sum(self.counts.values())
+        self.get_logger().info(f"wrote {total} messages on {len(self.counts)} topics to {self.path}")
+
+
+def main(argv=None) -> int:
+    def make(args):
+        if len(args) > 1:
+            raise ValueError(f"usage: mcap_recorder [OUTPUT.mcap] [--ros-args ...] (got {args})")
+        return McapRecorder(output=args[0] if args else None)
+    return run_single(make, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
