@@ -32,6 +32,8 @@ setup(
     entry_points={
         "console_scripts": [
             "curriculum_node = bimacppo_curriculum.ros.curriculum_node:main",
+            "curriculum_synthetic = bimacppo_curriculum.synthetic:main",
+            "curriculum_bench = bimacppo_curriculum.bench:main",
         ],
     },
 )

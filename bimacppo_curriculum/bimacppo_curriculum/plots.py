@@ -114,8 +114,9 @@ def plot_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray | 
     if not curves:
         raise ValueError("no curves to plot")
     fig, ax = plt.subplots(figsize=(7, 4))
-    for name, (x, y, spread) in curves.items():
-        line, = ax.plot(x, y, label=name)
+    styles = ("-", "--", "-.", ":", (0, (8, 2, 1, 2)))   # curves that coincide stay distinguishable
+    for k, (name, (x, y, spread)) in enumerate(curves.items()):
+        line, = ax.plot(x, y, label=name, ls=styles[k % len(styles)], lw=1.8)
         if spread is not None:
             ax.fill_between(x, y - spread, y + spread, color=line.get_color(), alpha=0.2)
     ax.set_xlabel("episode")

@@ -115,14 +115,16 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--episodes", type=int, default=5000)
     ap.add_argument("--sync-interval", type=int, default=None, help="override N_BiMAB (and RD's)")
+    ap.add_argument("--alpha", type=float, default=None, help="override the step sizes alpha_c, alpha_a (and RD's)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the run that is plotted as Figs. 5-6")
     ap.add_argument("--seeds", type=int, default=5, help="seeds per scheduler for the comparison")
     ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path("docs/img"))
     ap.add_argument("--prefix", default="curriculum_synthetic")
     args = ap.parse_args(argv)
 
-    ov = {"sync_interval": args.sync_interval} if args.sync_interval else None
-    overrides = {"bimab": ov, "rd": ov}
+    ov = {"sync_interval": args.sync_interval} if args.sync_interval else {}
+    alpha = {"alpha_c": args.alpha} if args.alpha else {}
+    overrides = {"bimab": {**ov, **alpha, **({"alpha_a": args.alpha} if args.alpha else {})}, "rd": {**ov, **alpha}}
     hist = run_named("bimab", args.seed, args.episodes, overrides=overrides["bimab"])
     n = sum(1 for k in hist[0] if k.startswith("cluster_prob_"))
     p = args.out / args.prefix
@@ -145,14 +147,15 @@ def main(argv=None) -> None:
         y = np.array([[h["mean_competence"] for h in r] for r in runs])
         curves[name] = (x, y.mean(0), y.std(0))
         last = np.array([[r[-1][f"competence_{i}"] for i in range(n)] for r in runs])
-        finals[name] = (y[:, -1], last)
+        at = [y[:, int(np.searchsorted(x, f * x[-1]))] for f in (0.25, 0.5)]
+        finals[name] = (at[0], at[1], y[:, -1], last)
     made.append(plots.plot_curves(curves, f"{p}_compare.png", ylabel="mean competence over all 12 scenarios",
                                   title=f"Synthetic learner under each scheduler ({args.seeds} seeds, mean ± std)"))
-    print(f"\n## Final competence of the synthetic learner ({args.seeds} seeds, mean ± std)\n")
-    print("| scheduler | all scenarios | " + " | ".join(f"N_sv={i}" for i in range(n)) + " |")
-    print("|---|---:|" + "---:|" * n)
-    for name, (allc, last) in finals.items():
-        print(f"| {name} | {allc.mean():.3f} ± {allc.std():.3f} | "
+    print(f"\n## Mean competence of the synthetic learner over the 12 scenarios ({args.seeds} seeds, mean ± std)\n")
+    print("| scheduler | at 25% | at 50% | at end | " + " | ".join(f"end, N_sv={i}" for i in range(n)) + " |")
+    print("|---|---:|---:|---:|" + "---:|" * n)
+    for name, (q1, q2, allc, last) in finals.items():
+        print(f"| {name} | " + " | ".join(f"{v.mean():.3f} ± {v.std():.3f}" for v in (q1, q2, allc)) + " | "
               + " | ".join(f"{last[:, i].mean():.3f}" for i in range(n)) + " |")
     print("\nfigures: " + json.dumps([str(m) for m in made]))
 
