@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Iterable, Mapping, Sequence
+from typing import Iterable, Mapping, Optional, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Duration as DurationMsg
@@ -45,6 +45,7 @@ TOPIC_REFERENCE = "/planner/reference"
 TOPIC_PLANNER_MARKERS = "/planner/markers"
 TOPIC_COMMAND = "/control/command"
 TOPIC_RESULT = "/episode/result"
+TOPIC_PLANNER_RESULT = "/planner/episode_result"
 
 SRV_WORLD_RESET = "/world/reset"
 SRV_WORLD_SET_PARAMETERS = "/world/set_parameters"
@@ -327,7 +328,7 @@ def pose_to_goal(msg: PoseStamped) -> np.ndarray:
 @dataclass(frozen=True)
 class EpisodeResult:
     outcome: str
-    episode_return: float
+    episode_return: Optional[float]   # None in the world's message: the return is the agent's
     n_sv: int
     task: str
     seed: int
@@ -338,16 +339,18 @@ class EpisodeResult:
 def result_to_status(res: EpisodeResult) -> DiagnosticStatus:
     if res.outcome not in OUTCOMES:
         raise MessageError(f"episode outcome must be one of {OUTCOMES}, got {res.outcome!r}")
-    if not math.isfinite(res.episode_return):
+    if res.episode_return is not None and not math.isfinite(res.episode_return):
         raise MessageError(f"episode return is not finite: {res.episode_return}")
     st = DiagnosticStatus()
     st.level = RESULT_LEVEL[res.outcome]
     st.name = RESULT_NAME
     st.message = res.outcome
     st.hardware_id = ""
-    kv = {"outcome": res.outcome, "return": repr(float(res.episode_return)), "n_sv": str(int(res.n_sv)),
+    kv = {"outcome": res.outcome, "n_sv": str(int(res.n_sv)),
           "task": res.task, "seed": str(int(res.seed)), "steps": str(int(res.steps)),
           "stamp_ns": str(int(res.stamp_ns))}
+    if res.episode_return is not None:
+        kv["return"] = repr(float(res.episode_return))
     st.values = [KeyValue(key=k, value=v) for k, v in kv.items()]
     return st
 
@@ -356,20 +359,72 @@ def status_to_result(msg: DiagnosticStatus) -> EpisodeResult:
     if msg.name != RESULT_NAME:
         raise MessageError(f"episode result: name is {msg.name!r}, expected {RESULT_NAME!r}")
     kv: Mapping[str, str] = {v.key: v.value for v in msg.values}
-    missing = [k for k in ("outcome", "return", "n_sv", "task", "seed", "steps") if k not in kv]
+    missing = [k for k in ("outcome", "n_sv", "task", "seed", "steps") if k not in kv]
     if missing:
         raise MessageError(f"episode result: missing keys {missing}")
     if kv["outcome"] not in OUTCOMES:
         raise MessageError(f"episode result: outcome {kv['outcome']!r} not in {OUTCOMES}")
     try:
-        ret = float(kv["return"])
+        ret = float(kv["return"]) if "return" in kv else None
         n_sv, seed, steps = int(kv["n_sv"]), int(kv["seed"]), int(kv["steps"])
         stamp = int(kv.get("stamp_ns", "0"))
     except ValueError as exc:
         raise MessageError(f"episode result: bad number ({exc})") from None
-    if not math.isfinite(ret):
+    if ret is not None and not math.isfinite(ret):
         raise MessageError(f"episode result: return is not finite ({kv['return']})")
     return EpisodeResult(kv["outcome"], ret, n_sv, kv["task"], seed, steps, stamp)
+
+
+def result_extras(msg: DiagnosticStatus) -> dict:
+    """All key-values of a result message as strings (extra facts beyond EpisodeResult)."""
+    return {v.key: v.value for v in msg.values}
+
+
+# ----------------------------------------------------------------------------- episodes
+class EpisodeGate:
+    """Which episode a stamped input belongs to, when goal, result and state travel on
+    different topics whose relative order DDS does not guarantee.
+
+    An episode starts at its goal's stamp (the world stamps the goal with the first
+    state's stamp) and ends at its result's stamp. ``classify(stamp)``:
+    ``"active"`` (answer it), ``"wait"`` (no goal for it yet: keep it until one comes),
+    ``"stale"`` (older than the current episode, or its terminal state: drop it).
+    """
+
+    def __init__(self) -> None:
+        self.goal = None
+        self.goal_stamp: Optional[int] = None
+        self.result_stamp: int = -1
+        self._started: Optional[int] = None
+
+    def on_goal(self, stamp_ns: int, goal) -> bool:
+        if self.goal_stamp is not None and stamp_ns < self.goal_stamp:
+            return False  # an older goal delivered late
+        self.goal, self.goal_stamp = goal, stamp_ns
+        return True
+
+    def on_result(self, stamp_ns: int) -> None:
+        self.result_stamp = max(self.result_stamp, stamp_ns)
+
+    def classify(self, stamp_ns: int) -> str:
+        if self.goal_stamp is None:
+            return "wait"
+        if stamp_ns < self.goal_stamp:
+            return "stale"
+        if self.result_stamp >= self.goal_stamp:       # the goal's episode is over
+            return "wait" if stamp_ns > self.result_stamp else "stale"
+        return "active"
+
+    def new_episode(self) -> bool:
+        """True once per goal: the caller resets its per-episode state."""
+        if self._started != self.goal_stamp:
+            self._started = self.goal_stamp
+            return True
+        return False
+
+    @property
+    def ended(self) -> bool:
+        return self.goal_stamp is not None and self.result_stamp >= self.goal_stamp
 
 
 # ----------------------------------------------------------------------------- markers

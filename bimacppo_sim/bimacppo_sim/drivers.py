@@ -1,0 +1,134 @@
+"""Scripted reference EV drivers: yardsticks for how hard the SVs make the world.
+
+"go" follows the route at a fixed speed ignoring everyone (pure pursuit + P speed loop);
+"yield" does the same but stops before the junction until no SV is within a safe time
+gap of (or inside) the junction, then commits. Both use only what the EV may observe
+(SV positions, speeds, headings), never SV goals or styles.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .config import DriverConfig
+
+DRIVERS = ("go", "yield")
+
+
+class GoDriver:
+    def __init__(self, world, config: DriverConfig | None = None):
+        self.world = world
+        self.cfg = config or DriverConfig.load()
+        self._i = 0
+        self._route = world.route
+
+    def reset(self):
+        self._i = 0
+        self._route = self.world.route
+
+    def _steer(self, x, y, v, psi):
+        r = self._route
+        n = len(r)
+        i = self._i
+        # monotone nearest-waypoint search (the EV never drives backwards along the route)
+        best = (r[i, 0] - x) ** 2 + (r[i, 1] - y) ** 2
+        while i + 1 < n:
+            d = (r[i + 1, 0] - x) ** 2 + (r[i + 1, 1] - y) ** 2
+            if d > best:
+                break
+            best, i = d, i + 1
+        self._i = i
+        ld = max(self.cfg.lookahead_min, v * self.cfg.lookahead_time)
+        j = i
+        while j + 1 < n and math.hypot(r[j, 0] - x, r[j, 1] - y) < ld:
+            j += 1
+        tx, ty = r[j, 0], r[j, 1]
+        alpha = math.atan2(ty - y, tx - x) - psi
+        dist = max(math.hypot(tx - x, ty - y), 1e-3)
+        L = self.world.cfg.vehicle.wheelbase
+        return math.asin(max(-1.0, min(1.0, L * math.sin(alpha) / dist)))
+
+    def target_speed(self, x, y, v, psi):
+        return self.cfg.target_speed
+
+    def act(self) -> np.ndarray:
+        x, y, v, psi = self.world.ego_tuple()
+        delta = self._steer(x, y, v, psi)
+        a = self.cfg.speed_gain * (self.target_speed(x, y, v, psi) - v)
+        return np.array([a, delta])
+
+
+class YieldDriver(GoDriver):
+    def reset(self):
+        super().reset()
+        self._committed = False
+
+    def __init__(self, world, config=None):
+        super().__init__(world, config)
+        self._committed = False
+
+    def _threat(self) -> bool:
+        w = self.world
+        H = getattr(w.road, "H", None)
+        if H is None:
+            return False
+        for st, active in zip(w.sv_states(), w.sv_active):
+            if not active:
+                continue
+            x, y, v, psi = st
+            if math.hypot(x, y) > self.cfg.watch_distance:
+                continue
+            d = max(abs(x), abs(y)) - H
+            if d <= 0.0:
+                return True
+            towards = math.cos(psi) * (-x) + math.sin(psi) * (-y) > 0.0
+            if towards and d / max(v, 0.5) < self.cfg.safe_time_gap:
+                return True
+        return False
+
+    def _stop_distance(self, y):
+        """Distance from the EV's front bumper to its stop line (EV comes from the south)."""
+        w = self.world
+        return (-w.road.H - self.cfg.stop_margin) - (y + 0.5 * w.cfg.vehicle.length)
+
+    def act(self) -> np.ndarray:
+        x, y, v, psi = self.world.ego_tuple()
+        delta = self._steer(x, y, v, psi)
+        a = self.cfg.speed_gain * (self.cfg.target_speed - v)
+        if getattr(self.world.road, "H", None) is not None and not self._committed:
+            d = self._stop_distance(y)
+            if not self._threat():
+                if d <= self.cfg.stop_margin:      # at the line with a clear junction: go
+                    self._committed = True
+            elif d > 0.0:
+                if v * v >= 2.0 * self.cfg.stop_decel * d * 0.8:   # follow the stopping profile
+                    a = -v * v / (2.0 * max(d, 0.05))
+                else:
+                    a = min(a, self.cfg.speed_gain * (math.sqrt(2.0 * self.cfg.stop_decel * d) - v))
+            else:                                   # over the line while threatened: stand still
+                a = -v / self.world.dt
+        return np.array([a, delta])
+
+
+def make_driver(name: str, world, config: DriverConfig | None = None):
+    if name == "go":
+        return GoDriver(world, config)
+    if name == "yield":
+        return YieldDriver(world, config)
+    raise ValueError(f"unknown driver {name!r}; expected one of {DRIVERS}")
+
+
+def run_episode(world, scenario, driver: str = "go", frames=None, config=None):
+    """Reset ``world`` to ``scenario`` and drive it to the end; returns the last StepResult.
+    ``frames`` (a callable) is called after reset and after every step (for GIFs)."""
+    world.reset(scenario)
+    drv = make_driver(driver, world, config)
+    if frames:
+        frames(world)
+    while True:
+        res = world.step(drv.act())
+        if frames:
+            frames(world)
+        if res.done:
+            return res

@@ -1,0 +1,222 @@
+"""World node: ``bimacppo_sim.World`` behind the topics of docs/interfaces.md.
+
+Two clocking modes (parameter ``mode``):
+
+* ``lockstep`` (deterministic): after publishing tick k's state the world waits for the
+  /control/command whose header.stamp equals tick k's stamp, then steps. If that command
+  does not come within ``resend_period_s`` (wall), tick k's messages are published again
+  (same stamp; the planner and controller answer repeats from their caches), so a node
+  that joined late or a lost sample never deadlocks the loop.
+* ``realtime``: a wall timer steps every dt / ``rate_factor`` with the latest command; a
+  command older than ``command_timeout_s`` (sim time) or none at all means brake
+  (a_min of the vehicle config) with the steering held.
+
+Sim time starts at one tick and only grows, also across resets (a reset advances it by
+one tick), so every published state has a unique stamp and /clock never jumps back.
+"""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock as ClockMsg
+from std_srvs.srv import Trigger
+
+from bimacppo_sim import TASKS, Scenario, World, load_map
+
+from . import interfaces as I
+from .runtime import run_single
+
+MODES = ("lockstep", "realtime")
+
+
+class WorldNode(Node):
+    """Simulator adapter; all dynamics, SV behaviour and outcomes come from ``World``."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(I.WORLD_NODE, **kwargs)
+        d = self.declare_parameter
+        d("map_id", "dual_lane_4way")
+        d("mode", "lockstep")
+        d("autostart", True)
+        d("scenario.n_sv", 0)
+        d("scenario.task", "straight")
+        d("scenario.seed", 0)
+        d("rate_factor", 1.0)
+        d("command_timeout_s", 0.3)
+        d("resend_period_s", 0.5)
+        d("publish_markers", True)
+        p = lambda n: self.get_parameter(n).value  # noqa: E731
+        self.mode = p("mode")
+        if self.mode not in MODES:
+            raise ValueError(f"world: parameter mode must be one of {MODES}, got {self.mode!r}")
+        self.rate_factor = float(p("rate_factor"))
+        if not self.rate_factor > 0:
+            raise ValueError(f"world: rate_factor must be > 0, got {self.rate_factor}")
+        self.command_timeout_ns = int(float(p("command_timeout_s")) * I.NS_PER_S)
+        self.resend_period = float(p("resend_period_s"))
+        self.markers_on = bool(p("publish_markers"))
+        self.world = World(load_map(p("map_id")))
+        self.dt_ns = int(round(self.world.dt * I.NS_PER_S))
+        veh = self.world.cfg.vehicle
+        self.brake = float(veh.a_min)
+        self.style = I.MarkerStyle(length=veh.length, width=veh.width)
+        self._check_scenario(self._scenario_params())
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.pub_clock = self.create_publisher(ClockMsg, I.TOPIC_CLOCK, I.CLOCK_QOS)
+        self.pub_odom = self.create_publisher(I.Odometry, I.TOPIC_EGO_ODOM, I.STATE_QOS)
+        self.pub_objects = self.create_publisher(I.MultiDOFJointTrajectory, I.TOPIC_OBJECTS, I.STATE_QOS)
+        self.pub_markers = self.create_publisher(I.MarkerArray, I.TOPIC_MARKERS, I.MARKER_QOS)
+        self.pub_goal = self.create_publisher(I.PoseStamped, I.TOPIC_GOAL, I.LATCHED_QOS)
+        self.pub_result = self.create_publisher(I.DiagnosticStatus, I.TOPIC_RESULT, I.RESULT_QOS)
+        self.create_subscription(I.JointTrajectory, I.TOPIC_COMMAND, self._on_command, I.STATE_QOS)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+
+        self.tick = 0                  # global tick counter: stamp = tick * dt
+        self.active = False            # an episode is running
+        self.episodes = 0
+        self.results = []              # EpisodeResult of every finished episode (for in-process use)
+        self.trajectory = []           # (stamp_ns, ego) of the current episode
+        self._last_cmd: Optional[tuple] = None   # (stamp_ns, u)
+        self._last_pub = 0.0
+        self._delta_hold = 0.0
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        if self.mode == "lockstep":
+            self.create_timer(max(self.resend_period, 0.01), self._resend, clock=steady)
+        else:
+            self.create_timer(self.world.dt / self.rate_factor, self._realtime_step, clock=steady)
+        if p("autostart"):
+            self.reset_episode()
+
+    # ------------------------------------------------------------------ parameters
+    def _scenario_params(self):
+        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        return g("scenario.n_sv"), g("scenario.task"), g("scenario.seed")
+
+    def _check_scenario(self, params) -> Scenario:
+        n_sv, task, seed = params
+        if task not in TASKS:
+            raise ValueError(f"world: scenario.task must be one of {TASKS}, got {task!r}")
+        if not isinstance(n_sv, int) or not 0 <= n_sv <= self.world.max_sv:
+            raise ValueError(f"world: scenario.n_sv must be an integer in 0..{self.world.max_sv}, got {n_sv!r}")
+        return Scenario(n_sv=n_sv, task=task, seed=seed)
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        cur = dict(zip(("scenario.n_sv", "scenario.task", "scenario.seed"), self._scenario_params()))
+        for prm in params:
+            if prm.name in ("mode", "map_id"):
+                return SetParametersResult(successful=False, reason=f"{prm.name} is fixed at start-up")
+            if prm.name in cur:
+                cur[prm.name] = prm.value
+        try:
+            self._check_scenario(tuple(cur.values()))
+        except (ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ episode
+    def stamp_ns(self) -> int:
+        return self.tick * self.dt_ns
+
+    def reset_episode(self) -> Scenario:
+        """Start the scenario in the parameters (also what /world/reset does)."""
+        sc = self._check_scenario(self._scenario_params())
+        self.world.reset(sc)
+        self.tick += 1
+        self.active = True
+        self.trajectory = []
+        self._last_cmd = None
+        self._delta_hold = 0.0
+        self.pub_goal.publish(I.goal_to_pose(self.world.goal, self.stamp_ns()))
+        self._publish_state()
+        return sc
+
+    def _on_reset(self, _req, resp):
+        try:
+            sc = self.reset_episode()
+        except (ValueError, TypeError) as exc:
+            resp.success, resp.message = False, str(exc)
+            return resp
+        resp.success = True
+        resp.message = f"n_sv={sc.n_sv} task={sc.task} seed={sc.seed} stamp_ns={self.stamp_ns()}"
+        return resp
+
+    def _publish_state(self) -> None:
+        stamp = self.stamp_ns()
+        w = self.world
+        ego, svs = w.ego, w.sv_states()
+        if not self.trajectory or self.trajectory[-1][0] != stamp:
+            self.trajectory.append((stamp, ego.copy()))
+        self.pub_clock.publish(ClockMsg(clock=I.ns_to_stamp(stamp)))
+        self.pub_odom.publish(I.state_to_odometry(ego, stamp))
+        self.pub_objects.publish(I.svs_to_objects(w.sv_ids, svs, stamp))
+        if self.markers_on:
+            self.pub_markers.publish(I.world_markers(ego, svs, w.goal, w.route, stamp, self.style))
+        self._last_pub = time.monotonic()
+
+    def _step(self, u) -> None:
+        res = self.world.step(np.asarray(u, dtype=float))
+        self._delta_hold = float(u[1])
+        self.tick += 1
+        self._publish_state()
+        if res.done:
+            self.active = False
+            sc = self.world.scenario
+            out = I.EpisodeResult(res.outcome, None, sc.n_sv, sc.task, sc.seed, res.steps, self.stamp_ns())
+            self.results.append(out)
+            self.episodes += 1
+            st = I.result_to_status(out)
+            w = self.world
+            extra = {"n_pcp": int(w.n_pcp), "dist_to_goal": float(w.dist_to_goal()),
+                     "speed": float(w.ego[2]), "lane_changes": int(getattr(w, "ev_lane_change_count", 0)),
+                     "collided_with": str(res.collided_with or ""), "sim_time": float(w.time)}
+            st.values += [I.KeyValue(key=k, value=repr(v) if isinstance(v, float) else str(v))
+                          for k, v in extra.items()]
+            self.pub_result.publish(st)
+            self.get_logger().info(f"episode {self.episodes}: {res.outcome} after {res.steps} steps "
+                                   f"(n_sv={sc.n_sv}, task={sc.task}, seed={sc.seed})")
+
+    # ------------------------------------------------------------------ commands
+    def _on_command(self, msg) -> None:
+        try:
+            u, _ = I.trajectory_to_command(msg)
+        except I.MessageError as exc:
+            self.get_logger().warning(f"ignored command: {exc}")
+            return
+        stamp = I.stamp_to_ns(msg.header.stamp)
+        if self.mode == "realtime":
+            self._last_cmd = (stamp, u)
+            return
+        if self.active and stamp == self.stamp_ns():
+            self._step(u)
+
+    def _resend(self) -> None:
+        if self.active and time.monotonic() - self._last_pub >= self.resend_period:
+            self._publish_state()
+
+    def _realtime_step(self) -> None:
+        if not self.active:
+            return
+        cmd = self._last_cmd
+        if cmd is None or self.stamp_ns() - cmd[0] > self.command_timeout_ns:
+            u = np.array([self.brake, self._delta_hold])
+        else:
+            u = cmd[1]
+        self._step(u)
+
+
+def main(argv=None) -> int:
+    def make(args):
+        if args:
+            raise ValueError(f"world_node takes no positional arguments (got {args}); use --ros-args -p ...")
+        return WorldNode()
+    return run_single(make, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
