@@ -1,0 +1,171 @@
+"""Curriculum node: a scheduler (``make_scheduler``) choosing Omega_ij and resetting the world.
+
+Cycle: sample (i, j) -> set the world's ``scenario.n_sv / scenario.task / scenario.seed``
+through its standard SetParameters service -> call /world/reset (std_srvs/Trigger) ->
+wait for the episode's result -> ``update(i, j, return)`` -> next, until ``episodes``
+episodes are done (0 = forever). All service calls are asynchronous, so the node works in
+a single-threaded executor next to the world it drives.
+
+The return comes from /planner/episode_result (the world's result plus the agent's
+``return``, see docs/interfaces.md); ``result_topic`` can point elsewhere. Scenario seeds
+are ``seed_base + episode index``: a run is reproducible from its parameters.
+"""
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+
+from bimacppo_curriculum import make_scheduler
+from bimacppo_sim.ros import interfaces as I
+from bimacppo_sim.ros.runtime import run_single
+
+TASKS = ("left", "straight", "right")  # architecture.md: task index j -> name
+
+
+def _param(name: str, value) -> ParameterMsg:
+    v = ParameterValue()
+    if isinstance(value, str):
+        v.type, v.string_value = ParameterType.PARAMETER_STRING, value
+    else:
+        v.type, v.integer_value = ParameterType.PARAMETER_INTEGER, int(value)
+    return ParameterMsg(name=name, value=v)
+
+
+class CurriculumNode(Node):
+    """Thin adapter over ``Scheduler.sample/update``."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(I.CURRICULUM_NODE, **kwargs)
+        d = self.declare_parameter
+        d("scheduler", "bimab")
+        d("seed", 0)
+        d("episodes", 10)
+        d("seed_base", 0)
+        d("result_topic", I.TOPIC_PLANNER_RESULT)
+        d("world_node", I.WORLD_NODE)
+        d("retry_period_s", 0.5)
+        g = lambda n: self.get_parameter(n).value  # noqa: E731
+        self.episodes = int(g("episodes"))
+        if self.episodes < 0:
+            raise ValueError(f"curriculum: episodes must be >= 0 (0 = forever), got {self.episodes}")
+        self.sched = make_scheduler(g("scheduler"), seed=int(g("seed")),
+                                    total_episodes=self.episodes or None)
+        self.seed_base = int(g("seed_base"))
+        world = g("world_node").strip("/")
+        self.cli_params = self.create_client(SetParameters, f"/{world}/set_parameters")
+        self.cli_reset = self.create_client(Trigger, f"/{world}/reset")
+        self.create_subscription(I.DiagnosticStatus, g("result_topic"), self._on_result, I.RESULT_QOS)
+        self.create_service(Trigger, I.SRV_CURRICULUM_NEXT, self._on_next)
+        self.done = False
+        self.finished = 0
+        self.counts: Counter = Counter()
+        self.results = []          # (i, j, seed, outcome, return)
+        self.current = None        # (i, j, seed) of the running episode
+        self._busy = False         # a set/reset round trip is in flight
+        self._warned = False
+        self.create_timer(float(g("retry_period_s")), self._kick,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    # ------------------------------------------------------------------ cycle
+    def _kick(self) -> None:
+        """Start the first episode once the world's services exist (and retry failures)."""
+        if self.current is None and not self._busy and not self.done:
+            self.start_next()
+
+    def start_next(self) -> bool:
+        if self._busy or self.done:
+            return False
+        if not (self.cli_params.service_is_ready() and self.cli_reset.service_is_ready()):
+            return False
+        i, j = self.sched.sample()
+        seed = self.seed_base + self.finished
+        self._busy = True
+        self.current = None
+        req = SetParameters.Request(parameters=[
+            _param("scenario.n_sv", i), _param("scenario.task", TASKS[j]), _param("scenario.seed", seed)])
+        self.cli_params.call_async(req).add_done_callback(lambda f: self._after_params(f, (i, j, seed)))
+        return True
+
+    def _after_params(self, fut, scen) -> None:
+        try:
+            results = fut.result().results
+        except Exception as exc:
+            self._busy = False
+            self.get_logger().error(f"setting world parameters failed: {exc}")
+            return
+        bad = [r.reason for r in results if not r.successful]
+        if bad:
+            self._busy = False
+            self.done = True
+            self.get_logger().error(f"world rejected scenario {scen}: {bad}")
+            return
+        self.cli_reset.call_async(Trigger.Request()).add_done_callback(lambda f: self._after_reset(f, scen))
+
+    def _after_reset(self, fut, scen) -> None:
+        self._busy = False
+        try:
+            resp = fut.result()
+        except Exception as exc:
+            self.get_logger().error(f"/world/reset failed: {exc}")
+            return
+        if not resp.success:
+            self.get_logger().error(f"/world/reset refused: {resp.message}")
+            return
+        self.current = scen
+        self.get_logger().info(f"episode {self.finished + 1}: n_sv={scen[0]} task={TASKS[scen[1]]} "
+                               f"seed={scen[2]} ({resp.message})")
+
+    def _on_result(self, msg) -> None:
+        try:
+            res = I.status_to_result(msg)
+        except I.MessageError as exc:
+            self.get_logger().warning(f"ignored result: {exc}")
+            return
+        if self.current is None:
+            return
+        i, j, seed = self.current
+        if (res.n_sv, res.task, res.seed) != (i, TASKS[j], seed):
+            return  # a result of an abandoned episode
+        self.current = None
+        if res.episode_return is None:
+            if not self._warned:
+                self.get_logger().warning("results carry no 'return': the scheduler is not updated")
+                self._warned = True
+        else:
+            self.sched.update(i, j, res.episode_return)
+        self.finished += 1
+        self.counts[res.outcome] += 1
+        self.results.append((i, j, seed, res.outcome, res.episode_return))
+        if self.episodes and self.finished >= self.episodes:
+            self.done = True
+            self.get_logger().info(f"curriculum done: {dict(self.counts)}")
+            return
+        self.start_next()
+
+    def _on_next(self, _req, resp):
+        if self.done:
+            resp.success, resp.message = False, "curriculum finished"
+        elif self.start_next():
+            resp.success, resp.message = True, "next scenario requested"
+        else:
+            resp.success, resp.message = False, "busy or world services not available"
+        return resp
+
+
+def main(argv=None) -> int:
+    def make(args):
+        if args:
+            raise ValueError(f"curriculum_node takes no positional arguments (got {args})")
+        return CurriculumNode()
+    return run_single(make, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

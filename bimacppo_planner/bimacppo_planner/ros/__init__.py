@@ -1,0 +1,1 @@
+"""ROS 2 adapters of bimacppo_planner (rclpy only below this package)."""
