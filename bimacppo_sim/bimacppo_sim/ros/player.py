@@ -18,11 +18,12 @@ from typing import Dict, Optional
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from . import interfaces as I
 from . import mcap_io
-from .recorder import STRING_ARRAY, import_message_type
+from .recorder import import_message_type, string_list
 from .runtime import run_single
 
 BATCH = 200
@@ -52,8 +53,8 @@ class McapPlayer(Node):
         self.declare_parameter("path", "")
         self.declare_parameter("rate", 1.0)
         self.declare_parameter("start_delay_s", 1.0)
-        self.declare_parameter("topics", [], STRING_ARRAY)
-        self.declare_parameter("exclude", [], STRING_ARRAY)
+        self.declare_parameter("topics", Parameter.Type.STRING_ARRAY)
+        self.declare_parameter("exclude", Parameter.Type.STRING_ARRAY)
         self.declare_parameter("queue_depth", 100)
         self.declare_parameter("period_s", 0.002)
         self.declare_parameter("linger_s", 1.0)
@@ -66,8 +67,8 @@ class McapPlayer(Node):
         self.rate = float(p("rate").value)
         if not self.rate >= 0.0:
             raise ValueError(f"mcap_player: rate must be >= 0 (0 = as fast as possible), got {self.rate}")
-        self.topics = set(p("topics").value)
-        self.exclude = set(p("exclude").value)
+        self.topics = set(string_list(self, "topics"))
+        self.exclude = set(string_list(self, "exclude"))
         self.depth = int(p("queue_depth").value)
         self.linger_s = float(p("linger_s").value)
         # a first pass finds every channel, so all publishers exist (and get matched during

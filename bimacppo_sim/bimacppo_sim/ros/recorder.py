@@ -27,6 +27,7 @@ from typing import Dict, List
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from . import interfaces as I
@@ -43,6 +44,15 @@ def import_message_type(type_name: str):
         return getattr(importlib.import_module(f"{pkg}.{ns}"), name)
     except (ImportError, AttributeError) as exc:
         raise LookupError(f"message type {type_name} is not importable here ({exc})") from None
+
+
+def string_list(node, name: str) -> list:
+    """A STRING_ARRAY parameter declared without default: unset means []."""
+    from rclpy.exceptions import ParameterUninitializedException
+    try:
+        return list(node.get_parameter(name).value or [])
+    except ParameterUninitializedException:
+        return []
 
 
 def _policy_name(p) -> str:
@@ -80,14 +90,14 @@ class McapRecorder(Node):
         self.declare_parameter("chunk_size", 65536)
         self.declare_parameter("flush_period_s", 1.0)
         self.declare_parameter("compression", "zstd")
-        self.declare_parameter("topics", [], STRING_ARRAY)
-        self.declare_parameter("exclude", [], STRING_ARRAY)
+        self.declare_parameter("topics", Parameter.Type.STRING_ARRAY)
+        self.declare_parameter("exclude", Parameter.Type.STRING_ARRAY)
         self.declare_parameter("queue_depth", 100)
         p = self.get_parameter
         path = output or p("output").value or datetime.now().strftime("bimacppo_%Y%m%d_%H%M%S.mcap")
         self.path = os.path.abspath(path)
-        self.topics = {t for t in p("topics").value if t}
-        self.exclude = {t for t in p("exclude").value if t}
+        self.topics = {t for t in string_list(self, "topics") if t}
+        self.exclude = {t for t in string_list(self, "exclude") if t}
         self.depth = int(p("queue_depth").value)
         chunk = int(p("chunk_size").value)
         if chunk <= 0 or self.depth <= 0:

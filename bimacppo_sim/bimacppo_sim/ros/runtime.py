@@ -15,12 +15,14 @@ import threading
 from typing import Callable, List, Optional, Sequence
 
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 SPIN_TIMEOUT_S = 0.05
 EXIT_CONFIG_ERROR = 2
+ParameterException = (InvalidParameterTypeException, InvalidParameterValueException)
 DRAIN_ROUNDS = 50
 """spin_once(0) calls after a stop request, so messages already delivered get handled."""
 
@@ -98,7 +100,7 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
     try:
         try:
             node = make_node(args)
-        except (ValueError, FileNotFoundError, LookupError) as exc:
+        except (ValueError, FileNotFoundError, LookupError, *ParameterException) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return EXIT_CONFIG_ERROR
         ex = SingleThreadedExecutor()

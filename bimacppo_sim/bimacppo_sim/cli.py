@@ -1,0 +1,168 @@
+"""bimacppo-sim: render scenarios, run scripted episodes to GIF, build the reference
+table of the scripted drivers, and benchmark the world."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import tracemalloc
+from collections import Counter
+
+from .drivers import DRIVERS, make_driver, run_episode
+from .road import TASKS, available_maps, load_map
+from .world import Scenario, World
+
+
+def _scenario(a):
+    return Scenario(n_sv=a.n_sv, task=a.task, seed=a.seed)
+
+
+def cmd_render(a):
+    from .render import Renderer
+    w = World(load_map(a.map))
+    w.reset(_scenario(a))
+    r = Renderer(w, view=a.view)
+    r.save_png(a.output)
+    print(f"wrote {a.output}  (n_pcp={w.n_pcp}, styles={w.sv_styles}, manoeuvres={w.sv_maneuvers})")
+
+
+def cmd_episode(a):
+    from .render import Renderer, save_gif
+    w = World(load_map(a.map))
+    w.reset(_scenario(a))
+    r = Renderer(w, view=a.view)
+    frames = []
+    k = [0]
+
+    def grab(world):
+        if k[0] % a.every == 0 or world.done:
+            frames.append(r.rgb_array())
+        k[0] += 1
+    res = run_episode(w, _scenario(a), a.driver, frames=grab)
+    save_gif(frames, a.output, w.dt * a.every)
+    print(f"{a.driver}: {res.outcome} after {res.time:.1f}s (collided_with={res.collided_with}); wrote {a.output}")
+
+
+def reference_table(map_id, episodes, seed0, drivers=DRIVERS, progress=True):
+    from tqdm import tqdm
+    road = load_map(map_id)
+    w = World(road)
+    rows = []
+    combos = [(d, t, n) for d in drivers for t in TASKS if t in road.turns for n in range(road.max_sv + 1)]
+    bar = tqdm(total=len(combos) * episodes, disable=not progress, desc="reference")
+    for d, t, n in combos:
+        c = Counter()
+        steps = 0
+        for e in range(episodes):
+            res = run_episode(w, Scenario(n, t, seed0 + e), d)
+            c[res.outcome] += 1
+            steps += res.steps
+            bar.update()
+        rows.append((d, t, n, c["success"], c["collision"], c["timeout"], steps / episodes * w.dt))
+    bar.close()
+    return rows
+
+
+def cmd_reference(a):
+    rows = reference_table(a.map, a.episodes, a.seed0)
+    lines = [f"Map `{a.map}`, {a.episodes} episodes per cell, seeds {a.seed0}..{a.seed0 + a.episodes - 1}.", "",
+             "| driver | task | N_sv | success % | collision % | timeout % | mean episode time (s) |",
+             "|---|---|---|---|---|---|---|"]
+    for d, t, n, s, c, to, mt in rows:
+        k = a.episodes / 100.0
+        lines.append(f"| {d} | {t} | {n} | {s / k:.0f} | {c / k:.0f} | {to / k:.0f} | {mt:.1f} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if a.out:
+        with open(a.out, "w") as fh:
+            fh.write(text)
+        print(f"wrote {a.out}")
+
+
+def bench(map_id="dual_lane_4way", n_sv=3, steps=20000, seed0=0):
+    """World steps/s with n_sv SVs; the EV input is a constant (controller excluded)."""
+    import numpy as np
+    w = World(load_map(map_id))
+    action = np.array([0.5, 0.0])
+    done_steps, eps = 0, 0
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    while done_steps < steps:
+        w.reset(Scenario(n_sv, "straight", seed0 + eps))
+        eps += 1
+        while True:
+            done_steps += 1
+            if w.step(action).done or done_steps >= steps:
+                break
+    dt = time.perf_counter() - t0
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    # second pass without tracemalloc (it slows allocation-heavy code)
+    done_steps2, eps2 = 0, 0
+    t0 = time.perf_counter()
+    while done_steps2 < steps:
+        w.reset(Scenario(n_sv, "straight", seed0 + eps2))
+        eps2 += 1
+        while True:
+            done_steps2 += 1
+            if w.step(action).done or done_steps2 >= steps:
+                break
+    dt2 = time.perf_counter() - t0
+    import resource
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {"steps": done_steps2, "episodes": eps2, "seconds": dt2, "steps_per_s": done_steps2 / dt2,
+            "steps_per_s_traced": done_steps / dt, "tracemalloc_peak_kib": peak / 1024.0, "max_rss_mib": rss}
+
+
+def cmd_bench(a):
+    r = bench(a.map, a.n_sv, a.steps)
+    for k, v in r.items():
+        print(f"{k}: {v:.1f}" if isinstance(v, float) else f"{k}: {v}")
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="bimacppo-sim", description=__doc__)
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    def common(sp):
+        sp.add_argument("--map", default="dual_lane_4way", help=f"map id {available_maps()} or a YAML path")
+        sp.add_argument("--n-sv", type=int, default=3, help="number of SVs (0..map max)")
+        sp.add_argument("--task", default="left", choices=TASKS, help="EV task")
+        sp.add_argument("--seed", type=int, default=0, help="scenario seed (>= 0)")
+        sp.add_argument("--view", type=float, default=60.0, help="half-width of the view (m)")
+    sp = sub.add_parser("render", help="draw the initial state of a scenario to PNG")
+    common(sp)
+    sp.add_argument("-o", "--output", default="scenario.png")
+    sp.set_defaults(func=cmd_render)
+    sp = sub.add_parser("episode", help="run a scripted driver and write the episode as GIF")
+    common(sp)
+    sp.add_argument("--driver", default="go", choices=DRIVERS)
+    sp.add_argument("--every", type=int, default=2, help="keep every k-th frame")
+    sp.add_argument("-o", "--output", default="episode.gif")
+    sp.set_defaults(func=cmd_episode)
+    sp = sub.add_parser("reference", help="success/collision/timeout table of the scripted drivers")
+    sp.add_argument("--map", default="dual_lane_4way")
+    sp.add_argument("--episodes", type=int, default=100)
+    sp.add_argument("--seed0", type=int, default=10000, help="first seed; cell uses seed0..seed0+episodes-1")
+    sp.add_argument("--out", default=None, help="write the markdown table here")
+    sp.set_defaults(func=cmd_reference)
+    sp = sub.add_parser("bench", help="world steps/s and peak memory (controller excluded)")
+    sp.add_argument("--map", default="dual_lane_4way")
+    sp.add_argument("--n-sv", type=int, default=3)
+    sp.add_argument("--steps", type=int, default=20000)
+    sp.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except ValueError as exc:
+        print(f"bimacppo-sim: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

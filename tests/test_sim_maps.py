@@ -1,0 +1,134 @@
+"""Road maps: loading/validation, lane graph + A*, drivable area, Fig. 3 conflict counts."""
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from bimacppo_sim import TASKS, load_map
+from bimacppo_sim.road import MAP_DIR
+
+
+@pytest.mark.parametrize("mid", ["dual_lane_4way", "single_lane_4way", "three_lane_straight"])
+def test_maps_load_and_are_cached(mid):
+    a = load_map(mid)
+    assert a is load_map(mid)
+    assert a.id == mid
+    assert a.lanes
+
+
+def test_unknown_map_id_names_it_and_lists_available():
+    with pytest.raises(ValueError, match="unknown map id 'nowhere'.*dual_lane_4way"):
+        load_map("nowhere")
+
+
+def _write(tmp_path, **changes):
+    spec = yaml.safe_load((MAP_DIR / "dual_lane_4way.yaml").read_text())
+    spec.update(changes)
+    spec = {k: v for k, v in spec.items() if v is not None}
+    p = tmp_path / "m.yaml"
+    p.write_text(yaml.safe_dump(spec))
+    return p
+
+
+@pytest.mark.parametrize("changes, msg", [
+    ({"lane_width": -1.0}, "lane_width"),
+    ({"lane_width": "wide"}, "lane_width"),
+    ({"color": "red"}, "unknown key"),
+    ({"type": "roundabout"}, "type"),
+    ({"max_sv": 4}, "max_sv"),
+    ({"sv_arms": ["north", "south"]}, "sv_arms"),
+    ({"turns": {"left": [[0, 0]], "straight": [[0, 5]], "right": [[1, 1]]}}, "turns.straight"),
+    ({"arm_length": None}, "arm_length"),
+])
+def test_malformed_map_files_fail_naming_the_problem(tmp_path, changes, msg):
+    with pytest.raises(ValueError, match=msg):
+        load_map(_write(tmp_path, **changes))
+
+
+def test_broken_yaml_and_missing_file(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("id: [unclosed\n")
+    with pytest.raises(ValueError, match="not valid YAML"):
+        load_map(p)
+    with pytest.raises(ValueError, match="not found"):
+        load_map(tmp_path / "missing.yaml")
+
+
+def test_dual_lane_geometry_matches_spec():
+    r = load_map("dual_lane_4way")
+    assert r.n_lanes == 2 and r.lane_width == 3.5
+    # inner northbound lane of the south arm sits 1.75 m east of the centre line
+    ln = r.lanes["south_in_0"]
+    assert np.allclose(ln.points[:, 0], 1.75)
+    assert math.isclose(ln.heading, math.pi / 2)
+    assert r.lanes["south_in_1"].left == "south_in_0"
+    assert r.lanes["south_in_0"].right == "south_in_1" and r.lanes["south_in_0"].left is None
+
+
+def test_drivable_area():
+    r = load_map("dual_lane_4way")
+    assert r.drivable(0.0, 0.0)
+    assert r.drivable(6.9, -40.0)
+    assert not r.drivable(7.1, -40.0)                         # beside the road
+    assert not r.drivable(r.H - 0.2, r.H - 0.2)               # inside the kerb fillet
+    assert r.drivable(r.half_road + 0.1, r.half_road + 0.1)   # junction corner near the lanes
+    s = load_map("three_lane_straight")
+    assert s.drivable(-5.0, 0.0) and not s.drivable(-5.5, 0.0)
+
+
+def test_lateral_point():
+    r = load_map("dual_lane_4way")
+    p = r.lateral_point(1.75, -40.0, math.pi / 2, +1)      # right of the inner lane: outer lane
+    assert np.allclose(p, [5.25, -40.0, math.pi / 2])
+    assert r.lateral_point(1.75, -40.0, math.pi / 2, -1) is None     # left of inner = oncoming
+    assert r.lateral_point(0.0, 0.0, 0.0, 1) is None                  # junction
+    assert r.lateral_point(1.75, -40.0, -math.pi / 2, 1) is None      # driving against the lane
+    s = load_map("three_lane_straight")
+    assert np.allclose(s.lateral_point(0.0, 10.0, math.pi / 2, -1)[:2], [-3.5, 10.0])
+    with pytest.raises(ValueError, match="side"):
+        r.lateral_point(1.75, -40.0, math.pi / 2, 0)
+
+
+def test_astar_changes_lane_before_the_junction_for_a_left_turn_from_the_outer_lane():
+    r = load_map("dual_lane_4way")
+    pts, conns, n_lc = r.plan_route("south_in_1", 30.0, "west_out_0", 20.0)
+    assert conns == ["south_in_0>west_out_0"]
+    assert n_lc == 1
+    # the lane change is complete before the no-lane-change zone at the junction edge
+    on_approach = pts[pts[:, 1] < -r.H]
+    after = on_approach[on_approach[:, 1] > -r.H - r.cfg.no_lane_change_zone]
+    assert np.allclose(after[:, 0], 1.75)
+    assert np.allclose(pts[-1], r.lane_point("west_out_0", 20.0)[:2])
+
+
+def test_astar_no_lane_change_when_already_right():
+    r = load_map("dual_lane_4way")
+    _, conns, n_lc = r.plan_route("south_in_1", 30.0, "east_out_1", 20.0)
+    assert conns == ["south_in_1>east_out_1"] and n_lc == 0
+
+
+# Paper Fig. 3 (single-lane intersection, one SV, summed over its manoeuvres):
+FIG3 = {"north": {"left": 2, "straight": 1, "right": 1},
+        "west": {"left": 2, "straight": 2, "right": 1},
+        "east": {"left": 2, "straight": 3, "right": 0}}
+
+
+@pytest.mark.parametrize("arm", FIG3)
+def test_fig3_potential_collision_points_from_geometry(arm):
+    r = load_map("single_lane_4way")
+    assert {t: r.pcp_count(t, arm) for t in TASKS} == FIG3[arm]
+
+
+def test_pcp_per_manoeuvre_parts_add_up_and_reject_bad_input():
+    r = load_map("single_lane_4way")
+    for arm in FIG3:
+        for t in TASKS:
+            assert sum(r.pcp_count(t, arm, sv_maneuver=m) for m in TASKS) == r.pcp_count(t, arm)
+    # opposing straight paths are parallel: no conflict point; crossing straights: exactly one
+    assert r.pcp_count("straight", "north", sv_maneuver="straight") == 0
+    assert r.pcp_count("straight", "west", sv_maneuver="straight") == 1
+    with pytest.raises(ValueError, match="unknown task"):
+        r.pcp_count("u-turn", "north")
+    with pytest.raises(ValueError, match="SV arm"):
+        r.pcp_count("left", "south")
