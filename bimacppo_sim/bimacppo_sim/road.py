@@ -425,11 +425,16 @@ class RoadMap:
         """Potential collision points of two junction connectors: proper crossings of the
         centrelines, plus one merge point when both end in the same lane, plus one
         diverge point when both start in the same lane (paper Fig. 3)."""
+        key = (ca, cb)
+        cache = self.__dict__.setdefault("_pcp_cache", {})
+        if key in cache:
+            return cache[key]
         a, b = self.lanes[ca], self.lanes[cb]
         n = len(polyline_crossings(a.points, b.points))
         a_in, a_out = ca.split(">")
         b_in, b_out = cb.split(">")
-        return n + (a_out == b_out) + (a_in == b_in)
+        cache[key] = n + (a_out == b_out) + (a_in == b_in)
+        return cache[key]
 
     def pcp_count(self, task: str, sv_arm: str, ev_in_index: int | None = None, sv_maneuver: str | None = None):
         """N_pcp between the EV doing ``task`` and one SV from ``sv_arm``: summed over the
