@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 rclpy = pytest.importorskip("rclpy")
+pytestmark = pytest.mark.ros
 
 from bimacppo_sim.ros import interfaces as I  # noqa: E402
 from bimacppo_sim.ros import mcap_io  # noqa: E402

@@ -91,10 +91,10 @@ def run(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return runtime.EXIT_CONFIG_ERROR
     finally:
+        paths = [n.path for n in nodes if hasattr(n, "path") and hasattr(n, "counts")]
         runtime.close_nodes(nodes)
-        for n in nodes:
-            if n.get_name() == "mcap_recorder":
-                print(f"mcap: {n.path}")
+        for path in paths:
+            print(f"mcap: {path}")
 
 
 def main(argv=None) -> int:
