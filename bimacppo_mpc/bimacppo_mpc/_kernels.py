@@ -1,0 +1,796 @@
+"""numba kernels of the fast NMPC solver (see docs/mpc.md, "fast solver").
+
+The problem is eq. (32)-(33) in single shooting: the decision vector is
+z = [a_0, delta_0, a_1, delta_1, ...] (n = 2N) and the states are functions of z.
+Because v_k = v_0 + dt * sum_{j<k} a_j, the speed bounds are *linear* in z, so every
+constraint is linear and the feasible set is a fixed polytope. The kernel runs a
+line-search SQP on it:
+
+* derivatives of the cost by forward sensitivities S_k = dx_k/dz, exact Hessian by a
+  second-order adjoint (costates lambda_k times the curvature of the Euler step), or the
+  Gauss-Newton part only;
+* each QP is solved exactly by a dense primal active-set method (range space, incremental
+  Cholesky of the working-set Schur complement), warm-started with the previous working set;
+* every iterate is feasible (a convex combination of feasible points), so the merit
+  function is the cost itself and bounds hold exactly up to rounding, which a final
+  forward clamp removes.
+
+Everything is allocation-light and compiled with ``cache=True`` so a fresh process pays
+the compile once per machine, not per run.
+"""
+import math
+
+import numpy as np
+from numba import njit
+
+# status codes shared with controller.py (STATUS_TEXT there)
+ST_OK = 0
+ST_MAX_ITER = 1
+ST_LINESEARCH = 2
+ST_QP = 3
+ST_INFEASIBLE = 4
+ST_NONFINITE_STATE = 5
+ST_NONFINITE_REF = 6
+ST_NONFINITE_UPREV = 7
+ST_NONFINITE_RESULT = 8
+
+# indices into the packed parameter vector P (built by controller.pack_params)
+P_L, P_DT, P_AMIN, P_AMAX, P_DMIN, P_DMAX, P_VMIN, P_VMAX = 0, 1, 2, 3, 4, 5, 6, 7
+P_QX, P_QU, P_QDU = 8, 12, 14
+P_BRAKE, P_RELAX, P_TOL, P_EXACT = 16, 17, 18, 19
+P_SIZE = 20
+
+# numerical constants of the linear algebra (not tuning knobs: scale-free guards)
+_EPS_PIVOT = 1e-12       # relative pivot below which a working-set row is dependent
+_EPS_DIR = 1e-13         # |G_i s| below this is "parallel to constraint i"
+_ARMIJO = 1e-4           # sufficient-decrease constant of the backtracking line search
+_BACKTRACK = 0.5
+_MIN_STEP = 1e-10
+_EPS_ACTIVE = 1e-12      # constraint slack below this is treated as zero (active)
+_MIN_PIVOT = 1e-6        # Hessian pivots below this (relative to max |H_ii|) count as singular
+_SHIFT_GROWTH = 10.0
+_PIVOT_FLOOR = 1e-3      # modified-Cholesky pivot floor, relative to max |H_ii|
+_RHO_TRIES = 3           # active-constraint curvature rho = max|H_ii| * 10^t, t < _RHO_TRIES
+
+
+@njit(cache=True)
+def wrap_angle(a):
+    """Wrap to (-pi, pi]."""
+    w = a - 2.0 * math.pi * math.floor((a + math.pi) / (2.0 * math.pi))
+    if w <= -math.pi:
+        w = math.pi
+    return w
+
+
+@njit(cache=True)
+def rollout(x0, z, P, X):
+    """Explicit Euler eq. (2) of the bicycle model eq. (1)."""
+    N = z.size // 2
+    L = P[P_L]
+    dt = P[P_DT]
+    for i in range(4):
+        X[0, i] = x0[i]
+    for k in range(N):
+        a = z[2 * k]
+        d = z[2 * k + 1]
+        v = X[k, 2]
+        psi = X[k, 3]
+        X[k + 1, 0] = X[k, 0] + dt * v * math.cos(psi + d)
+        X[k + 1, 1] = X[k, 1] + dt * v * math.sin(psi + d)
+        X[k + 1, 2] = v + dt * a
+        X[k + 1, 3] = psi + dt * 2.0 * v / L * math.sin(d)
+
+
+@njit(cache=True)
+def cost_of(X, z, xref, uprev, P):
+    """Eq. (32)-(33): sum_{k=0}^{N} |x_k - x_ref|^2_Qx + sum_k |u_k|^2_Qu + |u_k - u_{k-1}|^2_Qdu."""
+    N = z.size // 2
+    J = 0.0
+    for k in range(N + 1):
+        for i in range(4):
+            e = X[k, i] - xref[i]
+            J += P[P_QX + i] * e * e
+    for k in range(N):
+        for i in range(2):
+            u = z[2 * k + i]
+            up = uprev[i] if k == 0 else z[2 * k - 2 + i]
+            du = u - up
+            J += P[P_QU + i] * u * u + P[P_QDU + i] * du * du
+    return J
+
+
+@njit(cache=True)
+def speed_tube(v0, N, P, vlo, vhi):
+    """Speed bounds for v_1..v_N; returns False if infeasible and relaxation is off.
+
+    With v_0 outside [v_min, v_max] the bound of step k is moved to the speed reachable
+    at full braking/acceleration, the nearest non-empty set (docs/mpc.md)."""
+    dt = P[P_DT]
+    ok = True
+    for k in range(1, N + 1):
+        reach_lo = v0 + k * dt * P[P_AMIN]
+        reach_hi = v0 + k * dt * P[P_AMAX]
+        lo = P[P_VMIN]
+        hi = P[P_VMAX]
+        if reach_lo > hi or reach_hi < lo:
+            ok = False
+        if P[P_RELAX] > 0.5:
+            hi = max(hi, reach_lo)
+            lo = min(lo, reach_hi)
+        vlo[k - 1] = lo
+        vhi[k - 1] = hi
+    return ok or P[P_RELAX] > 0.5
+
+
+@njit(cache=True)
+def project(z, v0, vlo, vhi, P):
+    """Make z feasible in place: box clip and a forward clamp of a_k into the speed tube."""
+    N = z.size // 2
+    dt = P[P_DT]
+    v = v0
+    for k in range(N):
+        d = z[2 * k + 1]
+        z[2 * k + 1] = min(max(d, P[P_DMIN]), P[P_DMAX])
+        lo = max(P[P_AMIN], (vlo[k] - v) / dt)
+        hi = min(P[P_AMAX], (vhi[k] - v) / dt)
+        a = min(max(z[2 * k], lo), hi)
+        z[2 * k] = a
+        v = v + dt * a
+
+
+@njit(cache=True)
+def build_constraints(v0, vlo, vhi, P, G, h):
+    """All constraints as G z <= h (rows: a/delta upper, a/delta lower, v upper, v lower)."""
+    N = vlo.size
+    n = 2 * N
+    dt = P[P_DT]
+    G[:, :] = 0.0
+    for j in range(n):
+        G[j, j] = 1.0
+        G[n + j, j] = -1.0
+        if j % 2 == 0:
+            h[j] = P[P_AMAX]
+            h[n + j] = -P[P_AMIN]
+        else:
+            h[j] = P[P_DMAX]
+            h[n + j] = -P[P_DMIN]
+    for k in range(N):
+        for j in range(k + 1):
+            G[2 * n + k, 2 * j] = dt
+            G[2 * n + N + k, 2 * j] = -dt
+        h[2 * n + k] = vhi[k] - v0
+        h[2 * n + N + k] = v0 - vlo[k]
+
+
+@njit(cache=True)
+def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
+    """Cost, gradient and (exact or Gauss-Newton) Hessian of the single-shooting cost."""
+    N = z.size // 2
+    n = 2 * N
+    L = P[P_L]
+    dt = P[P_DT]
+    rollout(x0, z, P, X)
+    J = cost_of(X, z, xref, uprev, P)
+    # forward sensitivities: S[k] = dx_k/dz; columns >= 2k are zero
+    for k in range(N):
+        v = X[k, 2]
+        psi = X[k, 3]
+        d = z[2 * k + 1]
+        c = math.cos(psi + d)
+        s = math.sin(psi + d)
+        a02 = dt * c
+        a03 = -dt * v * s
+        a12 = dt * s
+        a13 = dt * v * c
+        a32 = dt * 2.0 / L * math.sin(d)
+        for j in range(2 * k):
+            s0 = S[k, 0, j]
+            s1 = S[k, 1, j]
+            s2 = S[k, 2, j]
+            s3 = S[k, 3, j]
+            S[k + 1, 0, j] = s0 + a02 * s2 + a03 * s3
+            S[k + 1, 1, j] = s1 + a12 * s2 + a13 * s3
+            S[k + 1, 2, j] = s2
+            S[k + 1, 3, j] = s3 + a32 * s2
+        S[k + 1, 0, 2 * k] = 0.0
+        S[k + 1, 1, 2 * k] = 0.0
+        S[k + 1, 2, 2 * k] = dt
+        S[k + 1, 3, 2 * k] = 0.0
+        S[k + 1, 0, 2 * k + 1] = -dt * v * s
+        S[k + 1, 1, 2 * k + 1] = dt * v * c
+        S[k + 1, 2, 2 * k + 1] = 0.0
+        S[k + 1, 3, 2 * k + 1] = dt * 2.0 * v / L * math.cos(d)
+        for j in range(2 * k + 2, n):
+            for i in range(4):
+                S[k + 1, i, j] = 0.0
+    g[:] = 0.0
+    H[:, :] = 0.0
+    # state terms: gradient and Gauss-Newton part (lower triangle)
+    for k in range(1, N + 1):
+        m = 2 * k
+        for i in range(4):
+            q = P[P_QX + i]
+            if q == 0.0:
+                continue
+            w = 2.0 * q * (X[k, i] - xref[i])
+            for j in range(m):
+                sij = S[k, i, j]
+                if sij == 0.0:
+                    continue
+                g[j] += w * sij
+                t = 2.0 * q * sij
+                for l in range(j + 1):
+                    H[j, l] += t * S[k, i, l]
+    # input terms
+    for k in range(N):
+        for i in range(2):
+            j = 2 * k + i
+            u = z[j]
+            up = uprev[i] if k == 0 else z[j - 2]
+            qu = P[P_QU + i]
+            qd = P[P_QDU + i]
+            g[j] += 2.0 * qu * u + 2.0 * qd * (u - up)
+            H[j, j] += 2.0 * qu + 2.0 * qd
+            if k + 1 < N:
+                g[j] -= 2.0 * qd * (z[j + 2] - u)
+                H[j, j] += 2.0 * qd
+                H[j + 2, j] -= 2.0 * qd
+    if exact:
+        # costates lam[k] = d(cost of x_k..x_N)/dx_k, then curvature of each Euler step
+        for i in range(4):
+            lam[N, i] = 2.0 * P[P_QX + i] * (X[N, i] - xref[i])
+        for k in range(N - 1, 0, -1):
+            v = X[k, 2]
+            psi = X[k, 3]
+            d = z[2 * k + 1]
+            c = math.cos(psi + d)
+            s = math.sin(psi + d)
+            l0 = lam[k + 1, 0]
+            l1 = lam[k + 1, 1]
+            l2 = lam[k + 1, 2]
+            l3 = lam[k + 1, 3]
+            lam[k, 0] = l0
+            lam[k, 1] = l1
+            lam[k, 2] = l2 + dt * c * l0 + dt * s * l1 + dt * 2.0 / L * math.sin(d) * l3
+            lam[k, 3] = l3 - dt * v * s * l0 + dt * v * c * l1
+            for i in range(4):
+                lam[k, i] += 2.0 * P[P_QX + i] * (X[k, i] - xref[i])
+        M = np.empty((3, 3))
+        T = np.empty((3, n))
+        for k in range(N):
+            v = X[k, 2]
+            psi = X[k, 3]
+            d = z[2 * k + 1]
+            c = math.cos(psi + d)
+            s = math.sin(psi + d)
+            lx = lam[k + 1, 0]
+            ly = lam[k + 1, 1]
+            lp = lam[k + 1, 3]
+            # second derivatives of the Euler step w.r.t. (v_k, psi_k, delta_k), weighted by costates
+            m_vp = dt * (-lx * s + ly * c)
+            m_pp = dt * (-lx * v * c - ly * v * s)
+            M[0, 0] = 0.0
+            M[0, 1] = m_vp
+            M[1, 0] = m_vp
+            M[0, 2] = m_vp + lp * dt * 2.0 / L * math.cos(d)
+            M[2, 0] = M[0, 2]
+            M[1, 1] = m_pp
+            M[1, 2] = m_pp
+            M[2, 1] = m_pp
+            M[2, 2] = m_pp - lp * dt * 2.0 * v / L * math.sin(d)
+            m = 2 * k + 2
+            # W rows: dv_k/dz, dpsi_k/dz, ddelta_k/dz (= unit vector at 2k+1)
+            for p in range(3):
+                for j in range(m):
+                    wv = S[k, 2, j]
+                    wp = S[k, 3, j]
+                    wd = 1.0 if j == 2 * k + 1 else 0.0
+                    T[p, j] = M[p, 0] * wv + M[p, 1] * wp + M[p, 2] * wd
+            for j in range(m):
+                wv = S[k, 2, j]
+                wp = S[k, 3, j]
+                wd = 1.0 if j == 2 * k + 1 else 0.0
+                if wv == 0.0 and wp == 0.0 and wd == 0.0:
+                    continue
+                for l in range(j + 1):
+                    H[j, l] += wv * T[0, l] + wp * T[1, l] + wd * T[2, l]
+    for j in range(n):
+        for l in range(j):
+            H[l, j] = H[j, l]
+    return J
+
+
+@njit(cache=True)
+def cholesky(A, Lc, m, min_pivot):
+    """Lower Cholesky of A[:m,:m] into Lc; False if a pivot is <= min_pivot (not safely PD)."""
+    for j in range(m):
+        s = A[j, j]
+        for k in range(j):
+            s -= Lc[j, k] * Lc[j, k]
+        if s <= min_pivot or s <= _EPS_PIVOT * abs(A[j, j]):
+            return False
+        d = math.sqrt(s)
+        Lc[j, j] = d
+        for i in range(j + 1, m):
+            t = A[i, j]
+            for k in range(j):
+                t -= Lc[i, k] * Lc[j, k]
+            Lc[i, j] = t / d
+        for i in range(j):
+            Lc[i, j] = 0.0
+    return True
+
+
+@njit(cache=True)
+def fwd_solve(Lc, b, x, m):
+    for i in range(m):
+        t = b[i]
+        for k in range(i):
+            t -= Lc[i, k] * x[k]
+        x[i] = t / Lc[i, i]
+
+
+@njit(cache=True)
+def bwd_solve(Lc, b, x, m):
+    for i in range(m - 1, -1, -1):
+        t = b[i]
+        for k in range(i + 1, m):
+            t -= Lc[k, i] * x[k]
+        x[i] = t / Lc[i, i]
+
+
+@njit(cache=True)
+def _ws_add(Lh, G, idx, Y, Ls, nW, n, y, tmp):
+    """Append constraint idx to the working set if independent; returns the new size."""
+    fwd_solve(Lh, G[idx], y, n)
+    yy = 0.0
+    for i in range(n):
+        yy += y[i] * y[i]
+    for r in range(nW):
+        t = 0.0
+        for i in range(n):
+            t += Y[i, r] * y[i]
+        tmp[r] = t
+    # l = Ls^{-1} (Y^T y)
+    for r in range(nW):
+        t = tmp[r]
+        for k in range(r):
+            t -= Ls[r, k] * tmp[k]
+        tmp[r] = t / Ls[r, r]
+    dd = yy
+    for r in range(nW):
+        dd -= tmp[r] * tmp[r]
+    if dd <= _EPS_PIVOT * max(yy, 1e-300) or yy == 0.0:
+        return nW
+    for i in range(n):
+        Y[i, nW] = y[i]
+    for r in range(nW):
+        Ls[nW, r] = tmp[r]
+        Ls[r, nW] = 0.0
+    Ls[nW, nW] = math.sqrt(dd)
+    return nW + 1
+
+
+@njit(cache=True)
+def _ws_refactor(Y, Ls, nW, n, Sm):
+    for r in range(nW):
+        for q in range(r + 1):
+            t = 0.0
+            for i in range(n):
+                t += Y[i, r] * Y[i, q]
+            Sm[r, q] = t
+            Sm[q, r] = t
+    return cholesky(Sm, Ls, nW, 0.0)
+
+
+@njit(cache=True)
+def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws):
+    """min 1/2 p'Hp + g'p s.t. G p <= b, from the feasible p = 0 (b >= 0).
+
+    W[:nW] is the initial working set (rows assumed active at p = 0; dependent ones are
+    dropped). Returns (code, nW): code 0 optimal, 1 iteration limit (p feasible, not optimal).
+    """
+    n = g.size
+    m = b.size
+    grad = ws[0]
+    q = ws[1]
+    s = ws[2]
+    y = ws[3]
+    tmp = ws[4]
+    r = ws[5]
+    lam = ws[6]
+    slack = np.empty(m)
+    Gs = np.empty(m)
+    for i in range(n):
+        p[i] = 0.0
+    for i in range(m):
+        # rows satisfied with equality up to rounding count as active
+        slack[i] = b[i] if b[i] > _EPS_ACTIVE else 0.0
+        inW[i] = False
+    # rebuild the initial working set, dropping dependent rows
+    cand = W[:nW].copy()
+    nW = 0
+    for c in cand:
+        if slack[c] <= 0.0 and not inW[c]:
+            nn = _ws_add(Lh, G, c, Y, Ls, nW, n, y, tmp)
+            if nn > nW:
+                W[nW] = c
+                inW[c] = True
+                nW = nn
+    gnorm = 1.0
+    for i in range(n):
+        gnorm = max(gnorm, abs(g[i]))
+    for it in range(maxit):
+        # grad = H p + g ; q = Lh^{-1} grad
+        for i in range(n):
+            t = g[i]
+            for k in range(n):
+                t += H[i, k] * p[k]
+            grad[i] = t
+        fwd_solve(Lh, grad, q, n)
+        # lam = -S^{-1} Y' q ; r = q + Y lam ; s = -Lh^{-T} r
+        for a in range(nW):
+            t = 0.0
+            for i in range(n):
+                t += Y[i, a] * q[i]
+            tmp[a] = t
+        if nW > 0:
+            fwd_solve(Ls, tmp, y, nW)
+            bwd_solve(Ls, y, lam, nW)
+        for a in range(nW):
+            lam[a] = -lam[a]
+        for i in range(n):
+            t = q[i]
+            for a in range(nW):
+                t += Y[i, a] * lam[a]
+            r[i] = t
+        bwd_solve(Lh, r, s, n)
+        for i in range(n):
+            s[i] = -s[i]
+        snorm = 0.0
+        for i in range(n):
+            snorm = max(snorm, abs(s[i]))
+        alpha = 1.0
+        block = -1
+        if snorm > 0.0:
+            for c in range(m):
+                if inW[c]:
+                    Gs[c] = 0.0
+                    continue
+                t = 0.0
+                for i in range(n):
+                    t += G[c, i] * s[i]
+                Gs[c] = t
+                if t > _EPS_DIR:
+                    ratio = slack[c] / t
+                    if ratio < alpha:
+                        alpha = ratio
+                        block = c
+            for i in range(n):
+                p[i] += alpha * s[i]
+            for c in range(m):
+                if not inW[c]:
+                    slack[c] = max(slack[c] - alpha * Gs[c], 0.0)
+        if block >= 0:
+            slack[block] = 0.0
+            nn = _ws_add(Lh, G, block, Y, Ls, nW, n, y, tmp)
+            if nn == nW:
+                # numerically dependent blocking row: stop with the feasible p reached so far
+                return 1, nW
+            W[nW] = block
+            inW[block] = True
+            nW = nn
+            continue
+        # full step: p is the working-set optimum, lam its multipliers
+        worst = -1
+        wval = -1e-11 * gnorm
+        for a in range(nW):
+            if lam[a] < wval:
+                wval = lam[a]
+                worst = a
+        if worst < 0:
+            for a in range(nW):
+                lamW[a] = lam[a]
+            return 0, nW
+        inW[W[worst]] = False
+        for a in range(worst, nW - 1):
+            W[a] = W[a + 1]
+            for i in range(n):
+                Y[i, a] = Y[i, a + 1]
+        nW -= 1
+        if not _ws_refactor(Y, Ls, nW, n, Sm):
+            return 1, 0
+    return 1, nW
+
+
+@njit(cache=True)
+def convexify(H, Lh, G, b, H0, dmax):
+    """Make H positive definite where it matters, leaving the QP solution unchanged if possible.
+
+    The exact Hessian of this cost is typically indefinite only along inputs that sit on
+    their bounds (the reduced Hessian on the free inputs is positive definite at the
+    optimum). Adding rho * G_i' G_i for the constraints active at the current iterate
+    does not change the QP's KKT conditions as long as those rows stay active (G_i p = 0),
+    so it is tried first; only if that is not enough is the whole diagonal shifted
+    (Levenberg-Marquardt), which slows convergence but keeps a descent direction."""
+    n = H.shape[0]
+    m = G.shape[0]
+    H0[:, :] = H
+    rho = dmax
+    for attempt in range(_RHO_TRIES):
+        for c in range(m):
+            if b[c] > _EPS_ACTIVE:
+                continue
+            for i in range(n):
+                gi = G[c, i]
+                if gi == 0.0:
+                    continue
+                for j in range(n):
+                    H[i, j] += rho * gi * G[c, j]
+        if cholesky(H, Lh, n, _MIN_PIVOT * dmax):
+            return True
+        H[:, :] = H0
+        rho *= _SHIFT_GROWTH
+    H[:, :] = H0
+    # Gill-Murray modified Cholesky: raise the pivots just enough to keep L bounded, so the
+    # modification stays local to the variables carrying negative curvature
+    gamma = dmax
+    xi = 0.0
+    for i in range(n):
+        for j in range(i):
+            xi = max(xi, abs(H[i, j]))
+    beta2 = max(gamma, xi / math.sqrt(n * n - 1.0) if n > 1 else 0.0, 1e-300)
+    floor = _PIVOT_FLOOR * dmax
+    for j in range(n):
+        for i in range(j, n):
+            t = H[i, j]
+            for k in range(j):
+                t -= Lh[i, k] * Lh[j, k]
+            Lh[i, j] = t   # c_ij, scaled below
+        theta = 0.0
+        for i in range(j + 1, n):
+            theta = max(theta, abs(Lh[i, j]))
+        c = Lh[j, j]
+        d = c
+        if c <= _MIN_PIVOT * dmax or theta * theta / beta2 > c:
+            d = max(abs(c), theta * theta / beta2, floor)
+        H[j, j] += d - c
+        r = math.sqrt(d)
+        Lh[j, j] = r
+        for i in range(j + 1, n):
+            Lh[i, j] /= r
+        for i in range(j):
+            Lh[i, j] = 0.0
+    return True
+
+
+@njit(cache=True)
+def sqp(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X):
+    """Solve one problem from the feasible initial guess z (overwritten). Returns (status, cost, iters)."""
+    N = z.size // 2
+    n = 2 * N
+    m = 2 * n + 2 * N
+    exact = P[P_EXACT] > 0.5
+    tol = P[P_TOL]
+    S = np.zeros((N + 1, 4, n))
+    lam = np.zeros((N + 1, 4))
+    g = np.empty(n)
+    H = np.empty((n, n))
+    Lh = np.zeros((n, n))
+    G = np.empty((m, n))
+    h = np.empty(m)
+    b = np.empty(m)
+    p = np.empty(n)
+    zt = np.empty(n)
+    W = np.empty(n, dtype=np.int64)
+    inW = np.zeros(m, dtype=np.bool_)
+    lamW = np.empty(n)
+    Y = np.empty((n, n))
+    Ls = np.zeros((n, n))
+    Sm = np.empty((n, n))
+    ws = np.empty((7, max(n, m)))
+    Xt = np.empty((N + 1, 4))
+    H0 = np.empty((n, n))
+    build_constraints(x0[2], vlo, vhi, P, G, h)
+    nW = 0
+    for c in range(m):
+        t = h[c]
+        for i in range(n):
+            t -= G[c, i] * z[i]
+        b[c] = t
+        if t <= _EPS_ACTIVE and nW < n:
+            W[nW] = c
+            nW += 1
+    J = 0.0
+    for it in range(max_iter):
+        J = derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H)
+        for c in range(m):
+            t = h[c]
+            for i in range(n):
+                t -= G[c, i] * z[i]
+            b[c] = t
+        dmax = 0.0
+        for i in range(n):
+            dmax = max(dmax, abs(H[i, i]))
+        if not cholesky(H, Lh, n, _MIN_PIVOT * dmax):
+            if not convexify(H, Lh, G, b, H0, dmax):
+                return ST_QP, J, it
+        code, nW = qp_active_set(H, Lh, g, G, b, W, nW, qp_max_iter, p, lamW, inW, Y, Ls, Sm, ws)
+        gp = 0.0
+        for i in range(n):
+            gp += g[i] * p[i]
+        php = 0.0
+        for i in range(n):
+            t = 0.0
+            for k in range(n):
+                t += H[i, k] * p[k]
+            php += p[i] * t
+        pred = -(gp + 0.5 * php)
+        if code == 0 and pred <= tol * (1.0 + J):
+            return ST_OK, J, it
+        if gp >= 0.0:
+            return ST_QP, J, it
+        alpha = 1.0
+        accepted = False
+        while alpha >= _MIN_STEP:
+            for i in range(n):
+                zt[i] = z[i] + alpha * p[i]
+            project(zt, x0[2], vlo, vhi, P)
+            rollout(x0, zt, P, Xt)
+            Jt = cost_of(Xt, zt, xref, uprev, P)
+            if Jt <= J + _ARMIJO * alpha * gp:
+                accepted = True
+                break
+            alpha *= _BACKTRACK
+        if not accepted:
+            # no decrease possible within rounding: accept z as stationary if the
+            # predicted decrease is at the level of cost rounding error
+            if pred <= 1e3 * tol * (1.0 + J):
+                return ST_OK, J, it
+            return ST_LINESEARCH, J, it
+        for i in range(n):
+            z[i] = zt[i]
+        # the working set is kept: qp_active_set drops the rows no longer active at the new z
+    rollout(x0, z, P, X)
+    return ST_MAX_ITER, cost_of(X, z, xref, uprev, P), max_iter
+
+
+@njit(cache=True)
+def fallback(x0, uprev, P, u):
+    """Brake within bounds, hold (clipped) steering: the safe command of every fault."""
+    a = max(P[P_AMIN], P[P_BRAKE])
+    v0 = x0[2]
+    if math.isfinite(v0) and v0 >= P[P_VMIN]:
+        # do not brake through v_min in one step (standing still is the goal of braking)
+        a = min(max(a, (P[P_VMIN] - v0) / P[P_DT]), 0.0)
+    d = uprev[1]
+    if not math.isfinite(d):
+        d = 0.0
+    u[0] = a
+    u[1] = min(max(d, P[P_DMIN]), P[P_DMAX])
+
+
+@njit(cache=True)
+def initial_guess(x0, xref, uprev, warm, has_warm, guesses, P, vlo, vhi, z, X):
+    """Cheapest projected candidate among the enabled guesses (config.INITIAL_GUESSES order)."""
+    N = z.size // 2
+    n = 2 * N
+    zc = np.empty(n)
+    best = np.inf
+    for gidx in range(guesses.size):
+        if not guesses[gidx]:
+            continue
+        if gidx == 0:
+            if not has_warm:
+                continue
+            for k in range(N):
+                src = min(k + 1, N - 1)
+                zc[2 * k] = warm[src, 0]
+                zc[2 * k + 1] = warm[src, 1]
+        elif gidx == 1:
+            for k in range(N):
+                zc[2 * k] = uprev[0]
+                zc[2 * k + 1] = uprev[1]
+        elif gidx == 2:
+            zc[:] = 0.0
+        elif gidx == 3:
+            # full braking (the projection stops it at v_min)
+            for k in range(N):
+                zc[2 * k] = P[P_AMIN]
+                zc[2 * k + 1] = 0.0
+        else:
+            # constant acceleration reaching the reference speed at the end of the horizon
+            acc = (xref[2] - x0[2]) / (N * P[P_DT])
+            for k in range(N):
+                zc[2 * k] = acc
+                zc[2 * k + 1] = 0.0
+        project(zc, x0[2], vlo, vhi, P)
+        rollout(x0, zc, P, X)
+        Jc = cost_of(X, zc, xref, uprev, P)
+        if Jc < best:
+            best = Jc
+            z[:] = zc
+    if best == np.inf:
+        z[:] = 0.0
+        project(z, x0[2], vlo, vhi, P)
+
+
+@njit(cache=True)
+def prepare(x0, xref, uprev, P, xr, vlo, vhi):
+    """Input checks and heading unwrapping shared by both solvers; returns a status code."""
+    for i in range(4):
+        if not math.isfinite(x0[i]):
+            return ST_NONFINITE_STATE
+    for i in range(4):
+        if not math.isfinite(xref[i]):
+            return ST_NONFINITE_REF
+    for i in range(2):
+        if not math.isfinite(uprev[i]):
+            return ST_NONFINITE_UPREV
+    for i in range(4):
+        xr[i] = xref[i]
+    # heading error wrapped: the reference heading is moved to the branch nearest psi_0
+    xr[3] = x0[3] + wrap_angle(xref[3] - x0[3])
+    N = vlo.size
+    if not speed_tube(x0[2], N, P, vlo, vhi):
+        return ST_INFEASIBLE
+    return ST_OK
+
+
+@njit(cache=True)
+def solve_batch_kernel(X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
+                       Uout, Xout, cost, status, iters):
+    """B independent problems; Uwarm/has_warm are the per-slot warm starts (updated here)."""
+    B = X0.shape[0]
+    N = Uwarm.shape[1]
+    n = 2 * N
+    xr = np.empty(4)
+    vlo = np.empty(N)
+    vhi = np.empty(N)
+    z = np.empty(n)
+    u = np.empty(2)
+    for bi in range(B):
+        st = prepare(X0[bi], Xref[bi], Uprev[bi], P, xr, vlo, vhi)
+        it = 0
+        J = np.nan
+        if st == ST_OK:
+            initial_guess(X0[bi], xr, Uprev[bi], Uwarm[bi], has_warm[bi], guesses, P, vlo, vhi, z, Xout[bi])
+            st, J, it = sqp(X0[bi], xr, Uprev[bi], z, P, max_iter, qp_max_iter, vlo, vhi, Xout[bi])
+        if st == ST_OK:
+            project(z, X0[bi, 2], vlo, vhi, P)
+            rollout(X0[bi], z, P, Xout[bi])
+            J = cost_of(Xout[bi], z, xr, Uprev[bi], P)
+            finite = math.isfinite(J)
+            for k in range(N):
+                if not (math.isfinite(z[2 * k]) and math.isfinite(z[2 * k + 1])):
+                    finite = False
+            if not finite:
+                st = ST_NONFINITE_RESULT
+        if st == ST_OK:
+            for k in range(N):
+                Uout[bi, k, 0] = z[2 * k]
+                Uout[bi, k, 1] = z[2 * k + 1]
+                Uwarm[bi, k, 0] = z[2 * k]
+                Uwarm[bi, k, 1] = z[2 * k + 1]
+            has_warm[bi] = True
+        else:
+            fallback(X0[bi], Uprev[bi], P, u)
+            for k in range(N):
+                Uout[bi, k, 0] = u[0]
+                Uout[bi, k, 1] = u[1]
+            has_warm[bi] = False
+            finite_x0 = True
+            for i in range(4):
+                if not math.isfinite(X0[bi, i]):
+                    finite_x0 = False
+            if finite_x0:
+                for k in range(N):
+                    z[2 * k] = u[0]
+                    z[2 * k + 1] = u[1]
+                rollout(X0[bi], z, P, Xout[bi])
+            else:
+                Xout[bi, :, :] = np.nan
+            J = np.nan
+        cost[bi] = J
+        status[bi] = st
+        iters[bi] = it
