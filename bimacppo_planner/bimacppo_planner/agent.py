@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bimacppo_sim import RoadMap, load_map
+from bimacppo_sim import RoadMap, WorldConfig, load_map
+from bimacppo_sim.world import reference_route
 
 from .checkpoint import CheckpointError, Policy
 from .decision import EnvConfig, WaypointTracker, decode_action, observe
@@ -51,10 +52,10 @@ def load_policy(path: str | Path | None = None) -> Policy:
         return Policy(torch.load(buf, weights_only=True), path)
 
 
-def route_for(road: RoadMap, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
+def route_for(road: RoadMap, start: np.ndarray, goal: np.ndarray, world_config: WorldConfig | None = None) -> np.ndarray:
     """The A* reference waypoint set from a start pose to a goal pose on the planner's own map
-    copy — the same computation the world makes at reset."""
-    return road.route_between(start, goal)
+    copy — the same function the world calls at reset, so both get the same waypoints."""
+    return reference_route(road, start[:2], goal[:2], world_config)
 
 
 class HighLevelPlanner:

@@ -64,6 +64,7 @@ class IntersectionEnv(gym.Env):
         self._steps = 0
         self._lane_changes = 0
         self._mpc_failures = 0
+        self._renderer = None
 
     # -- helpers ---------------------------------------------------------------------
     def _obs(self) -> np.ndarray:
@@ -152,9 +153,18 @@ class IntersectionEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array":
             return None
-        from bimacppo_sim.render import render_rgb
+        if self._renderer is None:
+            from bimacppo_sim.render import Renderer
 
-        return render_rgb(self.world, x_imr=self._x_imr)
+            self._renderer = Renderer(self.world)
+        cands = None if self.tracker is None else self.tracker.candidates()
+        return self._renderer.rgb_array(x_imr=self._x_imr, candidates=cands)
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        super().close()
 
 
 def register_envs() -> None:

@@ -65,8 +65,9 @@ class Renderer:
                 style = "-" if k == 0 else (0, (4, 4))
                 ax.plot([a[0], b[0]], [a[1], b[1]], color="#e8c33a" if k == 0 else MARK, lw=1, ls=style, zorder=1)
 
-    def draw(self, x_imr=None, show_route: bool = True):
-        """Update the dynamic layer; returns the figure."""
+    def draw(self, x_imr=None, show_route: bool = True, candidates=None):
+        """Update the dynamic layer; returns the figure. ``candidates`` (K, 3) are the planner's
+        A1 waypoints (drawn as open circles), ``x_imr`` the chosen reference (cross + heading)."""
         for art in self._dyn:
             art.remove()
         self._dyn = []
@@ -84,6 +85,10 @@ class Renderer:
         if w.scenario is not None and w.scenario.ev_present:
             self._dyn.append(ax.add_patch(Polygon(box_corners(ex, ey, epsi, veh.length, veh.width),
                                                   color=EV_COLOUR, ec="k", zorder=5)))
+        if candidates is not None and len(candidates):
+            c = np.asarray(candidates, float)
+            self._dyn.append(ax.scatter(c[:, 0], c[:, 1], marker="o", s=40, facecolors="none",
+                                        edgecolors="magenta", linewidths=1.0, zorder=6))
         if x_imr is not None:
             xi = np.asarray(x_imr, float)
             self._dyn.append(ax.scatter([xi[0]], [xi[1]], marker="x", s=80, color="magenta", zorder=6))

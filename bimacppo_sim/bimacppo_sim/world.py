@@ -116,21 +116,19 @@ class World:
             pair = next((p for p in pairs if p[0] == k), pairs[0])
             goal_lane = f"{self.target_arm}_out_{pair[1]}"
             s_goal = cfg.success_distance
-            s_end = min(s_goal + cfg.route_tail, road.arm_length)
         else:
             start_lane = f"road_{k}"
             s_start = d0
             self.target_arm = None
             goal_lane = start_lane
             s_goal = s_start + road.goal_ahead
-            s_end = min(s_goal + cfg.route_tail, road.length)
         self.start_lane, self.goal_lane, self._s_goal = start_lane, goal_lane, s_goal
-        pts, conns, _ = road.plan_route(start_lane, s_start, goal_lane, s_end)
-        self._route_poly = pts
-        self.route = _resample(pts, cfg.waypoint_spacing)
-        self.goal = np.array(road.lane_point(goal_lane, s_goal))
-        self.ev_connector = conns[0] if conns else None
         x, y, psi = road.lane_point(start_lane, s_start)
+        self.goal = np.array(road.lane_point(goal_lane, s_goal))
+        # the same call the planner makes on its own map copy from the start and goal poses
+        self.route, pts, conns = reference_route(road, (x, y), self.goal, cfg, with_polyline=True)
+        self._route_poly = pts
+        self.ev_connector = conns[0] if conns else None
         self._ev = [x, y, v0, psi]
         self._ev_present = scenario.ev_present
         self._ev_yaw_rate = 0.0
@@ -491,6 +489,27 @@ def _eta(d, v, a):
     if d <= 0.0:
         return 0.0
     return (-v + math.sqrt(v * v + 2.0 * a * d)) / a
+
+
+def reference_route(road: RoadMap, start_xy, goal_xy, config: WorldConfig | None = None,
+                    with_polyline: bool = False):
+    """The EV's A* reference waypoint set (M, 3) [x, y, psi] from a start position to a goal
+    position, both on straight lanes: the world computes it at reset and the planner node
+    recomputes it from /ego/odom and /goal_pose, so both must go through this one function.
+    The route runs ``route_tail`` m past the goal so that A1 still has waypoints ahead there."""
+    cfg = config or WorldConfig.load()
+    start = road.locate(float(start_xy[0]), float(start_xy[1]))
+    goal = road.locate(float(goal_xy[0]), float(goal_xy[1]))
+    if start is None or goal is None:
+        which = "start" if start is None else "goal"
+        raise ValueError(f"route {which} ({float((start_xy if start is None else goal_xy)[0]):.2f}, "
+                         f"{float((start_xy if start is None else goal_xy)[1]):.2f}) is not on a straight lane "
+                         f"of map {road.id!r}")
+    end_s = road.lanes[goal[0]].length
+    s_end = min(goal[1] + cfg.route_tail, end_s)
+    pts, conns, _ = road.plan_route(start[0], start[1], goal[0], s_end)
+    route = _resample(pts, cfg.waypoint_spacing)
+    return (route, pts, conns) if with_polyline else route
 
 
 def _resample(pts, spacing):

@@ -1,0 +1,65 @@
+"""The deployed HighLevelPlanner reproduces the training environment's decisions exactly."""
+import numpy as np
+import pytest
+
+from bimacppo_planner.agent import HighLevelPlanner, load_policy, route_for
+from bimacppo_planner.checkpoint import CheckpointError, export_policy
+from bimacppo_planner.decision import EnvConfig
+from bimacppo_planner.env import IntersectionEnv
+from bimacppo_planner.ppo import PPO
+
+
+@pytest.fixture(scope="module")
+def policy_file(tmp_path_factory):
+    cfg = EnvConfig.load()
+    agent = PPO(cfg.obs_dim, cfg.nvec, seed=3)
+    path = tmp_path_factory.mktemp("pol") / "policy.pt"
+    export_policy(agent, path)
+    return path
+
+
+def test_planner_route_from_poses_equals_world_route():
+    env = IntersectionEnv()
+    for seed in range(6):
+        env.reset(options={"n_sv": 1, "task": seed % 3, "scenario_seed": seed})
+        w = env.world
+        route = route_for(env.road, np.array([w.ego[0], w.ego[1], w.ego[3]]), w.goal)
+        np.testing.assert_array_equal(route, w.route)
+
+
+def test_planner_on_raw_states_matches_env_decisions(policy_file):
+    env = IntersectionEnv()
+    policy = load_policy(policy_file)
+    hp = HighLevelPlanner(policy, env.road)
+    for seed, task in ((1, "left"), (2, "straight")):
+        obs, _ = env.reset(options={"n_sv": 3, "task": task, "scenario_seed": seed})
+        hp.reset(env.world.ego, env.world.goal)   # route computed from poses, as the ROS node does
+        for _ in range(60):
+            x_imr, info = hp.step(env.world.ego, env.world.sv_states())
+            np.testing.assert_array_equal(info["obs"], obs)
+            action = policy.act(obs, deterministic=True)
+            np.testing.assert_array_equal(info["action"], action)
+            obs, _, term, trunc, einfo = env.step(action)
+            np.testing.assert_array_equal(einfo["x_imr"], x_imr)
+            if term or trunc:
+                break
+
+
+def test_planner_rejects_bad_input(policy_file, tmp_path):
+    hp = HighLevelPlanner.load(policy_file)
+    with pytest.raises(RuntimeError, match="before reset"):
+        hp.step(np.zeros(4), np.zeros((0, 4)))
+    with pytest.raises(ValueError, match="NaN"):
+        hp.reset(np.array([0, -40, np.nan, 1.57]), np.array([0, 0, 0]))
+    with pytest.raises(ValueError, match="not on a straight lane"):
+        hp.reset(np.array([100.0, 100.0, 0.0, 0.0]), np.array([-23.0, 5.25, np.pi]))
+    with pytest.raises(CheckpointError, match="no such file"):
+        load_policy(tmp_path / "missing.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError):
+        load_policy(bad)
+    wrong = tmp_path / "wrong.pt"
+    export_policy(PPO(10, (5, 5, 3), seed=0), wrong)
+    with pytest.raises(CheckpointError, match="obs_dim"):
+        HighLevelPlanner.load(wrong)
