@@ -1,0 +1,222 @@
+"""Training checkpoints, the policy-only export, and ``Policy`` for deployment.
+
+Every file is read with ``torch.load(..., weights_only=True)`` (no arbitrary unpickling), so
+payloads hold only tensors and plain Python types; the scheduler state travels as JSON text.
+Writes are atomic (temp file in the same directory, fsync, ``os.replace``): a crash mid-write
+leaves the previous file intact.  Any unreadable, truncated, foreign or mis-shaped file raises
+``CheckpointError`` naming the file and the problem.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import re
+import tempfile
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+
+CHECKPOINT_FORMAT = "bimacppo-ppo-checkpoint"
+POLICY_FORMAT = "bimacppo-ppo-policy"
+FORMAT_VERSION = 1
+CKPT_PATTERN = re.compile(r"^ckpt_ep(\d+)\.pt$")
+
+_CKPT_KEYS = ("format", "version", "agent", "config", "scheduler_state", "counters", "rng")
+_AGENT_KEYS = ("obs_dim", "nvec", "actor", "critic", "actor_opt", "critic_opt", "obs_rms", "gen")
+_POLICY_KEYS = ("format", "version", "actor", "obs_rms", "obs_dim", "nvec", "hidden_sizes",
+                "activation", "obs_norm", "config_hash", "meta")
+
+
+class CheckpointError(Exception):
+    """A checkpoint or policy file that cannot be used; the message names the file."""
+
+    def __init__(self, path: str | os.PathLike, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike) -> None:
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _read(path: str | os.PathLike) -> Any:
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise CheckpointError(path, "file does not exist")
+    if path.stat().st_size == 0:
+        raise CheckpointError(path, "file is empty (truncated write?)")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises RuntimeError/UnpicklingError/EOFError/... by cause
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(path, f"not a readable torch file (corrupt or truncated): "
+                                    f"{type(exc).__name__}: {msg[:200]}") from None
+
+
+def _require(path, d: Any, keys, what: str, fmt: str) -> None:
+    if not isinstance(d, Mapping):
+        raise CheckpointError(path, f"{what} is a {type(d).__name__}, expected a dict")
+    if d.get("format", fmt) != fmt:
+        raise CheckpointError(path, f"format {d.get('format')!r}, expected {fmt!r}")
+    missing = [k for k in keys if k not in d]
+    if missing:
+        raise CheckpointError(path, f"{what} lacks key(s) {missing}")
+
+
+def save_checkpoint(path: str | os.PathLike, payload: Mapping[str, Any]) -> None:
+    """Atomically write a training checkpoint (payload built by the Trainer)."""
+    _require(path, payload, _CKPT_KEYS, "checkpoint payload", CHECKPOINT_FORMAT)
+    atomic_torch_save(dict(payload), path)
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """Read and structurally validate a training checkpoint (shapes are checked on restore)."""
+    d = _read(path)
+    _require(path, d, _CKPT_KEYS, "checkpoint", CHECKPOINT_FORMAT)
+    if d["version"] != FORMAT_VERSION:
+        raise CheckpointError(path, f"format version {d['version']!r}, this code reads {FORMAT_VERSION}")
+    _require(path, d["agent"], _AGENT_KEYS, "checkpoint['agent']", CHECKPOINT_FORMAT)
+    return d
+
+
+def restore_agent(agent, state: Mapping[str, Any], path: str | os.PathLike) -> None:
+    """Load ``state`` into ``agent``; a dimension or tensor-shape mismatch -> CheckpointError."""
+    try:
+        agent.load_state_dict(state)
+    except (ValueError, KeyError, RuntimeError, TypeError) as exc:
+        raise CheckpointError(path, f"does not fit this agent: {exc}") from None
+
+
+def checkpoint_path(directory: str | os.PathLike, episodes: int) -> pathlib.Path:
+    return pathlib.Path(directory) / f"ckpt_ep{episodes:08d}.pt"
+
+
+def list_checkpoints(directory: str | os.PathLike) -> list[pathlib.Path]:
+    """Checkpoint files in ``directory``, oldest (fewest episodes) first."""
+    d = pathlib.Path(directory)
+    if not d.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in d.iterdir() if (m := CKPT_PATTERN.match(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+def latest_checkpoint(directory: str | os.PathLike) -> pathlib.Path | None:
+    cks = list_checkpoints(directory)
+    return cks[-1] if cks else None
+
+
+# ------------------------------------------------------------------ deployment
+def export_policy(agent, path: str | os.PathLike, meta: Mapping[str, Any] | None = None) -> pathlib.Path:
+    """Write the actor + observation normaliser + metadata: all a planner node needs to act."""
+    from .ppo_config import config_hash
+
+    payload = {
+        "format": POLICY_FORMAT,
+        "version": FORMAT_VERSION,
+        "actor": {k: v.detach().clone() for k, v in agent.actor.state_dict().items()},
+        "obs_rms": agent.obs_rms.state_dict(),
+        "obs_dim": int(agent.obs_dim),
+        "nvec": [int(n) for n in agent.nvec],
+        "hidden_sizes": [int(h) for h in agent.cfg.hidden_sizes],
+        "activation": agent.cfg.activation,
+        "obs_norm": bool(agent.cfg.obs_norm),
+        "config_hash": config_hash(agent.cfg),
+        "meta": dict(meta or {}),
+    }
+    atomic_torch_save(payload, path)
+    return pathlib.Path(path)
+
+
+class Policy:
+    """Deployed policy: single-observation inference in plain numpy (no autograd, no batching
+    overhead), bit-for-bit the same argmax as the training actor."""
+
+    def __init__(self, payload: Mapping[str, Any], path: str | os.PathLike = "<memory>"):
+        _require(path, payload, _POLICY_KEYS, "policy file", POLICY_FORMAT)
+        if payload["version"] != FORMAT_VERSION:
+            raise CheckpointError(path, f"format version {payload['version']!r}, this code reads {FORMAT_VERSION}")
+        self.path = str(path)
+        self.obs_dim = int(payload["obs_dim"])
+        self.nvec = tuple(int(n) for n in payload["nvec"])
+        self.hidden_sizes = tuple(int(h) for h in payload["hidden_sizes"])
+        self.activation = str(payload["activation"])
+        if self.activation not in ("tanh", "relu"):
+            raise CheckpointError(path, f"unknown activation {self.activation!r}")
+        self.obs_norm = bool(payload["obs_norm"])
+        self.config_hash = str(payload["config_hash"])
+        self.meta = dict(payload["meta"])
+        sizes = [self.obs_dim, *self.hidden_sizes, sum(self.nvec)]
+        actor = payload["actor"]
+        self.layers: list[tuple[np.ndarray, np.ndarray]] = []
+        for k in range(len(sizes) - 1):
+            wk, bk = f"{2 * k}.weight", f"{2 * k}.bias"
+            if wk not in actor or bk not in actor:
+                raise CheckpointError(path, f"actor lacks layer tensors {wk}/{bk}")
+            w = actor[wk].detach().cpu().numpy().astype(np.float32)
+            b = actor[bk].detach().cpu().numpy().astype(np.float32)
+            if w.shape != (sizes[k + 1], sizes[k]) or b.shape != (sizes[k + 1],):
+                raise CheckpointError(path, f"actor.{wk} has shape {w.shape}, bias {b.shape}; expected "
+                                            f"({sizes[k + 1]}, {sizes[k]}) and ({sizes[k + 1]},)")
+            self.layers.append((np.ascontiguousarray(w.T), b))
+        if len(actor) != 2 * len(self.layers):
+            raise CheckpointError(path, f"actor has {len(actor)} tensors, expected {2 * len(self.layers)}")
+        rms = payload["obs_rms"]
+        try:
+            self.mean = np.asarray(rms["mean"], np.float64)
+            self.std = np.sqrt(np.asarray(rms["var"], np.float64) + float(rms["eps"]))
+            self.clip = float(rms["clip"])
+            self.count = float(rms["count"])
+        except (KeyError, TypeError) as exc:
+            raise CheckpointError(path, f"obs normaliser is malformed: {exc}") from None
+        if self.mean.shape != (self.obs_dim,) or self.std.shape != (self.obs_dim,):
+            raise CheckpointError(path, f"obs normaliser shape {self.mean.shape} != ({self.obs_dim},)")
+        self._split = np.cumsum(self.nvec)[:-1]
+        self._act = np.tanh if self.activation == "tanh" else (lambda x: np.maximum(x, 0.0))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Policy":
+        return cls(_read(path), path)
+
+    def logits(self, obs: np.ndarray) -> list[np.ndarray]:
+        x = np.asarray(obs, np.float64)
+        if x.shape != (self.obs_dim,):
+            raise ValueError(f"observation must have shape ({self.obs_dim},), got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise ValueError("observation contains NaN or inf")
+        if self.obs_norm and self.count > 0:
+            x = np.clip((x - self.mean) / self.std, -self.clip, self.clip)
+        elif self.obs_norm:
+            x = np.clip(x, -self.clip, self.clip)
+        h = x.astype(np.float32)
+        for k, (w, b) in enumerate(self.layers):
+            h = h @ w + b
+            if k < len(self.layers) - 1:
+                h = self._act(h)
+        return np.split(h, self._split)
+
+    def act(self, obs: np.ndarray, deterministic: bool = True,
+            rng: np.random.Generator | None = None) -> np.ndarray:
+        """One observation (obs_dim,) -> action (len(nvec),) int64: argmax per head, or a sample."""
+        heads = self.logits(obs)
+        if deterministic:
+            return np.array([int(np.argmax(h)) for h in heads], np.int64)
+        rng = rng if rng is not None else np.random.default_rng()
+        out = []
+        for h in heads:
+            p = np.exp(h - h.max())
+            out.append(int(rng.choice(len(p), p=p / p.sum())))
+        return np.array(out, np.int64)

@@ -1,0 +1,309 @@
+"""PPO for the MultiDiscrete([5, 5, 3]) high-level action of BiM-ACPPO (paper §III-C, §IV-A).
+
+One actor MLP emits sum(nvec) logits, split into one categorical head per sub-action
+(waypoint, speed, lane change); the sub-actions are sampled independently given the
+observation, so the joint log-probability is the sum of the heads' log-probabilities and
+the joint entropy the sum of their entropies.  The critic is a separate MLP with its own
+Adam optimiser (the paper gives the two networks different learning rates).
+
+The paper's "temporary policy network" (Algorithm 2) is PPO's old policy pi_theta_old:
+we keep it implicitly as the log-probabilities recorded when the rollout was collected,
+which is what the ratio in eq. (30) needs.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from .ppo_config import PPOConfig
+
+_ACT = {"tanh": nn.Tanh, "relu": nn.ReLU}
+
+
+def build_mlp(in_dim: int, hidden: Sequence[int], out_dim: int, activation: str,
+              gain_hidden: float, gain_out: float) -> nn.Sequential:
+    """Orthogonal init (PPO practice): stable early updates; tiny output gain = near-uniform policy."""
+    layers: list[nn.Module] = []
+    last = in_dim
+    for h in hidden:
+        lin = nn.Linear(last, h)
+        nn.init.orthogonal_(lin.weight, gain_hidden)
+        nn.init.zeros_(lin.bias)
+        layers += [lin, _ACT[activation]()]
+        last = h
+    out = nn.Linear(last, out_dim)
+    nn.init.orthogonal_(out.weight, gain_out)
+    nn.init.zeros_(out.bias)
+    layers.append(out)
+    return nn.Sequential(*layers)
+
+
+class MultiCategorical:
+    """Independent categorical heads over one logits vector split by ``nvec``."""
+
+    def __init__(self, logits: torch.Tensor, nvec: Sequence[int]):
+        if logits.shape[-1] != sum(nvec):
+            raise ValueError(f"logits last dim {logits.shape[-1]} != sum(nvec) {sum(nvec)}")
+        self.nvec = tuple(int(n) for n in nvec)
+        self.log_probs = [torch.log_softmax(part, dim=-1)
+                          for part in torch.split(logits, self.nvec, dim=-1)]
+
+    def log_prob(self, actions: torch.Tensor) -> torch.Tensor:
+        """Joint log-probability: sum over heads.  actions: (..., n_heads) integer."""
+        if actions.shape[-1] != len(self.nvec):
+            raise ValueError(f"actions last dim {actions.shape[-1]} != number of heads {len(self.nvec)}")
+        a = actions.long()
+        return sum(lp.gather(-1, a[..., k:k + 1]).squeeze(-1) for k, lp in enumerate(self.log_probs))
+
+    def head_log_probs(self, actions: torch.Tensor) -> torch.Tensor:
+        a = actions.long()
+        return torch.stack([lp.gather(-1, a[..., k:k + 1]).squeeze(-1)
+                            for k, lp in enumerate(self.log_probs)], dim=-1)
+
+    def entropy(self) -> torch.Tensor:
+        return sum(-(lp.exp() * lp).sum(-1) for lp in self.log_probs)
+
+    def mode(self) -> torch.Tensor:
+        return torch.stack([lp.argmax(-1) for lp in self.log_probs], dim=-1)
+
+    def sample(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        cols = []
+        for lp in self.log_probs:
+            flat = lp.exp().reshape(-1, lp.shape[-1])
+            cols.append(torch.multinomial(flat, 1, generator=generator).reshape(lp.shape[:-1]))
+        return torch.stack(cols, dim=-1)
+
+
+class RunningMeanStd:
+    """Running mean/variance of observations (Chan et al. parallel update), float64 for stability."""
+
+    def __init__(self, dim: int, eps: float, clip: float):
+        self.mean = np.zeros(dim, np.float64)
+        self.var = np.ones(dim, np.float64)
+        self.count = 0.0
+        self.eps = float(eps)
+        self.clip = float(clip)
+
+    def update(self, x: np.ndarray) -> None:
+        x = np.asarray(x, np.float64).reshape(-1, self.mean.shape[0])
+        n = x.shape[0]
+        if n == 0:
+            return
+        b_mean, b_var = x.mean(0), x.var(0)
+        tot = self.count + n
+        delta = b_mean - self.mean
+        self.mean = self.mean + delta * n / tot
+        self.var = (self.var * self.count + b_var * n + delta ** 2 * self.count * n / tot) / tot
+        self.count = tot
+
+    def normalize(self, x: np.ndarray) -> np.ndarray:
+        if self.count == 0:
+            return np.clip(np.asarray(x, np.float32), -self.clip, self.clip)
+        z = (np.asarray(x, np.float64) - self.mean) / np.sqrt(self.var + self.eps)
+        return np.clip(z, -self.clip, self.clip).astype(np.float32)
+
+    def state_dict(self) -> dict:
+        return {"mean": torch.from_numpy(self.mean.copy()), "var": torch.from_numpy(self.var.copy()),
+                "count": float(self.count), "eps": self.eps, "clip": self.clip}
+
+    def load_state_dict(self, d: Mapping) -> None:
+        mean = np.asarray(d["mean"], np.float64)
+        var = np.asarray(d["var"], np.float64)
+        if mean.shape != self.mean.shape or var.shape != self.var.shape:
+            raise ValueError(f"obs normaliser shape {tuple(mean.shape)} != expected {self.mean.shape}")
+        self.mean, self.var, self.count = mean.copy(), var.copy(), float(d["count"])
+        self.eps, self.clip = float(d["eps"]), float(d["clip"])
+
+
+def clipped_surrogate(new_logp: torch.Tensor, old_logp: torch.Tensor, adv: torch.Tensor,
+                      clip_eps: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Eq. (30) as a loss to minimise: -E[min(rho A, clip(rho, 1-eps, 1+eps) A)].
+
+    Returns (loss, clip_fraction, approx_kl); approx_kl is the low-variance k3 estimator
+    E[(rho - 1) - log rho] of KL(old || new).
+    """
+    log_ratio = new_logp - old_logp
+    ratio = log_ratio.exp()
+    unclipped = ratio * adv
+    clipped = ratio.clamp(1.0 - clip_eps, 1.0 + clip_eps) * adv
+    loss = -torch.min(unclipped, clipped).mean()
+    with torch.no_grad():
+        clip_frac = ((ratio - 1.0).abs() > clip_eps).float().mean()
+        approx_kl = ((ratio - 1.0) - log_ratio).mean()
+    return loss, clip_frac, approx_kl
+
+
+class PPO:
+    """Actor, critic, their optimisers, the observation normaliser and the sampling RNG."""
+
+    def __init__(self, obs_dim: int, nvec: Sequence[int], config: PPOConfig | None = None,
+                 seed: int = 0):
+        if int(obs_dim) < 1:
+            raise ValueError(f"obs_dim must be >= 1, got {obs_dim}")
+        nvec = tuple(int(n) for n in nvec)
+        if len(nvec) == 0 or min(nvec) < 1:
+            raise ValueError(f"nvec must be a non-empty list of positive sizes, got {nvec}")
+        self.cfg = config or PPOConfig()
+        self.obs_dim = int(obs_dim)
+        self.nvec = nvec
+        c = self.cfg
+        with torch.random.fork_rng(devices=[]):  # seeded init without touching the caller's RNG
+            torch.manual_seed(int(seed))
+            self.actor = build_mlp(self.obs_dim, c.hidden_sizes, sum(nvec), c.activation,
+                                   c.init_gain_hidden, c.init_gain_policy)
+            self.critic = build_mlp(self.obs_dim, c.hidden_sizes, 1, c.activation,
+                                    c.init_gain_hidden, c.init_gain_value)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr, eps=c.adam_eps)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr, eps=c.adam_eps)
+        self.obs_rms = RunningMeanStd(self.obs_dim, c.obs_norm_eps, c.obs_clip)
+        # Own generator: action sampling and minibatch shuffles stay reproducible whatever else
+        # (env code, other libraries) draws from torch's global RNG.
+        self.gen = torch.Generator().manual_seed(int(seed))
+
+    # ----------------------------------------------------------------- inference
+    def normalize_obs(self, obs: np.ndarray, update: bool = False) -> np.ndarray:
+        obs = np.asarray(obs, np.float32)
+        if obs.shape[-1] != self.obs_dim:
+            raise ValueError(f"observation last dim {obs.shape[-1]} != obs_dim {self.obs_dim}")
+        if not np.all(np.isfinite(obs)):
+            raise ValueError("observation contains NaN or inf")
+        if not self.cfg.obs_norm:
+            return obs
+        if update:
+            self.obs_rms.update(obs)
+        return self.obs_rms.normalize(obs)
+
+    def dist(self, obs_n: torch.Tensor) -> MultiCategorical:
+        return MultiCategorical(self.actor(obs_n), self.nvec)
+
+    @torch.no_grad()
+    def act(self, obs_n: np.ndarray, deterministic: bool = False
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Normalised obs (N, D) -> actions (N, heads) int64, joint log-probs (N,), values (N,)."""
+        x = torch.as_tensor(obs_n, dtype=torch.float32)
+        d = self.dist(x)
+        a = d.mode() if deterministic else d.sample(self.gen)
+        return (a.numpy().astype(np.int64), d.log_prob(a).numpy(),
+                self.critic(x).squeeze(-1).numpy())
+
+    @torch.no_grad()
+    def value(self, obs_n: np.ndarray) -> np.ndarray:
+        x = torch.as_tensor(obs_n, dtype=torch.float32)
+        return self.critic(x).squeeze(-1).numpy()
+
+    # -------------------------------------------------------------------- update
+    def update(self, obs: np.ndarray, actions: np.ndarray, old_logp: np.ndarray,
+               advantages: np.ndarray, returns: np.ndarray) -> dict[str, float]:
+        """`epochs` passes of shuffled minibatches over one flattened rollout.
+
+        Actor loss = clipped surrogate - entropy_coef * entropy; critic loss = MSE to the GAE
+        returns; each network has its own optimiser and grad-norm clip.
+        """
+        c = self.cfg
+        n = obs.shape[0]
+        if not (actions.shape[0] == old_logp.shape[0] == advantages.shape[0] == returns.shape[0] == n):
+            raise ValueError("rollout arrays have different lengths")
+        if n == 0:
+            raise ValueError("empty rollout")
+        O = torch.as_tensor(obs, dtype=torch.float32)
+        A = torch.as_tensor(actions, dtype=torch.long)
+        LP = torch.as_tensor(old_logp, dtype=torch.float32)
+        ADV = torch.as_tensor(advantages, dtype=torch.float32)
+        RET = torch.as_tensor(returns, dtype=torch.float32)
+        mb = min(c.minibatch_size, n)
+        sums = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0,
+                "clip_fraction": 0.0, "actor_grad_norm": 0.0, "critic_grad_norm": 0.0}
+        steps = 0
+        epochs_run = 0
+        stop = False
+        for _ in range(c.epochs):
+            perm = torch.randperm(n, generator=self.gen)
+            epoch_kl, epoch_mbs = 0.0, 0
+            for start in range(0, n, mb):
+                idx = perm[start:start + mb]
+                if idx.numel() < 2 and n >= 2:
+                    continue  # a 1-sample tail would give a meaningless normalised advantage
+                adv = ADV[idx]
+                if c.normalize_advantages and adv.numel() > 1:
+                    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+                d = self.dist(O[idx])
+                new_lp = d.log_prob(A[idx])
+                pl, cf, kl = clipped_surrogate(new_lp, LP[idx], adv, c.clip_eps)
+                ent = d.entropy().mean()
+                actor_loss = pl - c.entropy_coef * ent
+                self.actor_opt.zero_grad(set_to_none=True)
+                actor_loss.backward()
+                agn = nn.utils.clip_grad_norm_(self.actor.parameters(), c.max_grad_norm)
+                self.actor_opt.step()
+
+                v = self.critic(O[idx]).squeeze(-1)
+                vl = 0.5 * (v - RET[idx]).pow(2).mean()
+                self.critic_opt.zero_grad(set_to_none=True)
+                vl.backward()
+                cgn = nn.utils.clip_grad_norm_(self.critic.parameters(), c.max_grad_norm)
+                self.critic_opt.step()
+
+                for k, val in (("policy_loss", pl), ("value_loss", vl), ("entropy", ent),
+                               ("approx_kl", kl), ("clip_fraction", cf),
+                               ("actor_grad_norm", agn), ("critic_grad_norm", cgn)):
+                    sums[k] += float(val.detach())
+                steps += 1
+                epoch_kl += float(kl)
+                epoch_mbs += 1
+            epochs_run += 1
+            if c.target_kl is not None and epoch_mbs and epoch_kl / epoch_mbs > c.target_kl:
+                stop = True
+                break
+        stats = {k: v / max(steps, 1) for k, v in sums.items()}
+        with torch.no_grad():
+            v_pred = self.critic(O).squeeze(-1)
+            var_ret = RET.var() if n > 1 else torch.tensor(0.0)
+            stats["explained_variance"] = (float(1.0 - (RET - v_pred).var() / var_ret)
+                                           if n > 1 and float(var_ret) > 0 else float("nan"))
+        stats["epochs"] = float(epochs_run)
+        stats["early_stop"] = float(stop)
+        stats["minibatch_steps"] = float(steps)
+        return stats
+
+    # --------------------------------------------------------------- persistence
+    def state_dict(self) -> dict:
+        return {
+            "obs_dim": self.obs_dim,
+            "nvec": list(self.nvec),
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "obs_rms": self.obs_rms.state_dict(),
+            "gen": self.gen.get_state(),
+        }
+
+    def load_state_dict(self, d: Mapping) -> None:
+        """Shape-checked load; raises ValueError naming the first mismatching tensor."""
+        if int(d["obs_dim"]) != self.obs_dim or tuple(d["nvec"]) != self.nvec:
+            raise ValueError(f"agent built for obs_dim={self.obs_dim}, nvec={list(self.nvec)} but state has "
+                             f"obs_dim={d['obs_dim']}, nvec={list(d['nvec'])}")
+        for name, net in (("actor", self.actor), ("critic", self.critic)):
+            check_state_shapes(name, net.state_dict(), d[name])
+        self.actor.load_state_dict(d["actor"])
+        self.critic.load_state_dict(d["critic"])
+        self.actor_opt.load_state_dict(d["actor_opt"])
+        self.critic_opt.load_state_dict(d["critic_opt"])
+        self.obs_rms.load_state_dict(d["obs_rms"])
+        self.gen.set_state(d["gen"])
+
+
+def check_state_shapes(name: str, expected: Mapping[str, torch.Tensor], got: Mapping) -> None:
+    missing = sorted(set(expected) - set(got))
+    extra = sorted(set(got) - set(expected))
+    if missing or extra:
+        raise ValueError(f"{name}: missing tensors {missing}, unexpected tensors {extra}")
+    for k, t in expected.items():
+        g = got[k]
+        if not isinstance(g, torch.Tensor):
+            raise ValueError(f"{name}.{k}: expected a tensor, got {type(g).__name__}")
+        if tuple(g.shape) != tuple(t.shape):
+            raise ValueError(f"{name}.{k}: shape {tuple(g.shape)} != expected {tuple(t.shape)}")
