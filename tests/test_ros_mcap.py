@@ -121,29 +121,6 @@ def test_recorder_clean_stop_writes_complete_indexed_file(node, tmp_path):
     assert goals == [(10.0, -3.5)]  # the latched goal, published before recording started
 
 
-def test_recorder_killed_leaves_readable_prefix(node, tmp_path):
-    path = tmp_path / "killed.mcap"
-    flush_s = 0.2
-    rec, odom, goal = _record(node, path, 100, extra=("-p", f"flush_period_s:={flush_s}",
-                                                      "-p", "chunk_size:=4096"))
-    _spin(node, 1.5)  # several flush periods: the first 100 messages are on disk
-    for k in range(100, 160):  # the tail, still in the open chunk when the kill comes
-        odom.publish(I.state_to_odometry([float(k), 1.0, 2.0, 0.1], k + 1))
-    rc, _ = _stop(rec, signal.SIGKILL)
-    node.destroy_publisher(odom)
-    node.destroy_publisher(goal)
-    assert rc == -signal.SIGKILL
-    report = mcap_io.ReadReport()
-    xs = []
-    from mcap_ros2.decoder import DecoderFactory
-    dec = DecoderFactory()
-    for sch, ch, m in mcap_io.iter_mcap(path, report, topics=[I.TOPIC_EGO_ODOM]):
-        xs.append(dec.decoder_for("cdr", sch)(m.data).pose.pose.position.x)
-    assert not report.complete  # no summary: it was killed
-    assert len(xs) >= 100, report
-    assert xs == [float(k) for k in range(len(xs))]  # a prefix, nothing out of order or garbled
-
-
 def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
     path = tmp_path / "src.mcap"
     rec, odom, goal = _record(node, path, 80)
@@ -192,3 +169,28 @@ def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
     assert missing.returncode == 2 and "no such file" in out and "Traceback" not in out, out
     node.destroy_subscription(sub)
     node.destroy_subscription(gsub)
+
+
+def test_recorder_killed_leaves_readable_prefix(node, tmp_path):
+    # last in this file on purpose: a SIGKILLed participant lingers in DDS discovery (and its
+    # shared-memory ports) for seconds, which would disturb the tests after it
+    path = tmp_path / "killed.mcap"
+    flush_s = 0.2
+    rec, odom, goal = _record(node, path, 100, extra=("-p", f"flush_period_s:={flush_s}",
+                                                      "-p", "chunk_size:=4096"))
+    _spin(node, 1.5)  # several flush periods: the first 100 messages are on disk
+    for k in range(100, 160):  # the tail, still in the open chunk when the kill comes
+        odom.publish(I.state_to_odometry([float(k), 1.0, 2.0, 0.1], k + 1))
+    rc, _ = _stop(rec, signal.SIGKILL)
+    node.destroy_publisher(odom)
+    node.destroy_publisher(goal)
+    assert rc == -signal.SIGKILL
+    report = mcap_io.ReadReport()
+    xs = []
+    from mcap_ros2.decoder import DecoderFactory
+    dec = DecoderFactory()
+    for sch, ch, m in mcap_io.iter_mcap(path, report, topics=[I.TOPIC_EGO_ODOM]):
+        xs.append(dec.decoder_for("cdr", sch)(m.data).pose.pose.position.x)
+    assert not report.complete  # no summary: it was killed
+    assert len(xs) >= 100, report
+    assert xs == [float(k) for k in range(len(xs))]  # a prefix, nothing out of order or garbled
