@@ -172,8 +172,11 @@ def load_config(path: str | pathlib.Path | None = None, *, ppo: Mapping | None =
     unknown = sorted(set(doc) - {"ppo", "train"})
     if unknown:
         raise ValueError(f"{source}: unknown section(s) {unknown}; expected 'ppo' and 'train'")
-    ppo_raw = dict(doc.get("ppo") or {})
-    train_raw = dict(doc.get("train") or {})
+    ppo_raw, train_raw = doc.get("ppo") or {}, doc.get("train") or {}
+    for name, sec in (("ppo", ppo_raw), ("train", train_raw)):
+        if not isinstance(sec, Mapping):
+            raise ValueError(f"{source}: section '{name}' must be a mapping, got {type(sec).__name__}")
+    ppo_raw, train_raw = dict(ppo_raw), dict(train_raw)
     pcfg = _build(PPOConfig, "ppo", ppo_raw, source)
     tcfg = _build(TrainConfig, "train", train_raw, source)
     if ppo:

@@ -1,0 +1,182 @@
+"""PPO core: heads and log-probs, GAE (hand-worked, with truncation), clip objective, config."""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from bimacppo_planner.ppo import PPO, MultiCategorical, RunningMeanStd, clipped_surrogate
+from bimacppo_planner.ppo_config import PPOConfig, TrainConfig, load_config
+from bimacppo_planner.rollout import RolloutBuffer, compute_gae
+
+NVEC = (5, 5, 3)
+
+
+def test_actor_emits_one_logit_per_choice_and_log_prob_is_sum_of_heads():
+    agent = PPO(16, NVEC, PPOConfig(), seed=0)
+    assert agent.actor[-1].out_features == sum(NVEC)
+    assert [m.out_features for m in agent.actor if isinstance(m, torch.nn.Linear)] == [256, 128, 13]
+    assert [m.out_features for m in agent.critic if isinstance(m, torch.nn.Linear)] == [256, 128, 1]
+    obs = torch.randn(7, 16)
+    d = agent.dist(obs)
+    a = d.sample(torch.Generator().manual_seed(1))
+    assert a.shape == (7, 3) and a.dtype == torch.long
+    for k, n in enumerate(NVEC):
+        assert int(a[:, k].min()) >= 0 and int(a[:, k].max()) < n
+    lp = d.log_prob(a)
+    assert lp.shape == (7,)
+    # independent heads: joint log-prob = sum of each head's own log-softmax entry
+    logits = agent.actor(obs)
+    parts = torch.split(logits, NVEC, dim=-1)
+    manual = sum(torch.log_softmax(p, -1).gather(-1, a[:, k:k + 1]).squeeze(-1) for k, p in enumerate(parts))
+    torch.testing.assert_close(lp, manual)
+    # entropies add; near-uniform init (small output gain) -> close to the maximum
+    assert d.entropy().shape == (7,)
+    assert float(d.entropy().mean().detach()) == pytest.approx(np.log(5) * 2 + np.log(3), abs=0.05)
+    # probabilities of all 75 joint actions sum to one
+    one = torch.randn(1, 16)
+    dd = agent.dist(one.expand(75, 16))
+    grid = torch.tensor([[i, j, k] for i in range(5) for j in range(5) for k in range(3)])
+    assert float(dd.log_prob(grid).exp().sum()) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_multicategorical_rejects_wrong_shapes():
+    with pytest.raises(ValueError, match="sum\\(nvec\\)"):
+        MultiCategorical(torch.zeros(2, 12), NVEC)
+    d = MultiCategorical(torch.zeros(2, 13), NVEC)
+    with pytest.raises(ValueError, match="heads"):
+        d.log_prob(torch.zeros(2, 2, dtype=torch.long))
+
+
+def test_gae_hand_computed_with_termination_and_truncation():
+    g, lam = 0.9, 0.5
+    # one env, 5 steps: episode A = steps 0,1 ends by TRUNCATION at step 1 (final obs value 4.0);
+    # episode B = steps 2,3 ends by TERMINATION at step 3; step 4 is cut by the rollout end (V=0.5)
+    r = np.array([1.0, 2.0, 0.0, 3.0, 1.0])
+    v = np.array([0.5, 1.0, 2.0, 1.5, 0.2])
+    nv = np.array([1.0, 4.0, 1.5, 99.0, 0.5])     # 99 must be ignored: termination
+    term = np.array([0, 0, 0, 1, 0], bool)
+    end = np.array([0, 1, 0, 1, 0], bool)
+    adv, ret = compute_gae(r, v, nv, term, end, g, lam)
+    d4 = 1.0 + g * 0.5 - 0.2
+    d3 = 3.0 - 1.5
+    d2 = 0.0 + g * 1.5 - 2.0
+    d1 = 2.0 + g * 4.0 - 1.0                       # bootstrap from the final obs on truncation
+    d0 = 1.0 + g * 1.0 - 0.5
+    exp = np.array([d0 + g * lam * d1, d1, d2 + g * lam * d3, d3, d4])
+    np.testing.assert_allclose(adv, exp, rtol=1e-6)
+    np.testing.assert_allclose(ret, exp + v, rtol=1e-6)
+    # lambda = 1, gamma = 1, no value: advantages are plain reward-to-go within each episode
+    adv1, _ = compute_gae(r, np.zeros(5), np.zeros(5), term, end, 1.0, 1.0)
+    np.testing.assert_allclose(adv1, [3.0, 2.0, 3.0, 3.0, 1.0])
+
+
+def test_gae_validates_inputs():
+    z = np.zeros(3)
+    with pytest.raises(ValueError, match="shape"):
+        compute_gae(z, z, np.zeros(4), z.astype(bool), z.astype(bool), 0.9, 0.9)
+    with pytest.raises(ValueError, match="terminated"):
+        compute_gae(z, z, z, np.array([1, 0, 0], bool), np.zeros(3, bool), 0.9, 0.9)
+
+
+def test_buffer_bootstraps_truncation_from_final_obs_value_not_next_episode():
+    buf = RolloutBuffer(3, 1, 2, 3)
+    obs = [np.array([[0.0, 0.0]]), np.array([[1.0, 0.0]]), np.array([[2.0, 0.0]])]
+    vals = [0.0, 0.0, 7.0]            # step 2 is the first obs of a NEW episode, value 7
+    for t in range(3):
+        buf.add(obs[t], np.zeros((1, 3)), [0.0], [vals[t]], [0.0], [False], [t == 1])
+    buf.final_obs.append((1, 0, np.array([5.0, 0.0], np.float32)))
+    value_fn = lambda o: np.asarray(o)[:, 0] * 10.0   # noqa: E731  V(final obs) = 50
+    data = buf.finish(value_fn, np.array([[3.0, 0.0]], np.float32), gamma=1.0, lam=1.0)
+    # step 1 (truncated): r + V(final) - V = 50; step 0 folds it in; step 2: cut -> V(last)=30 - 7
+    np.testing.assert_allclose(data["advantages"], [50.0, 50.0, 23.0])
+
+
+def test_clip_objective_behaviour():
+    old = torch.zeros(4)
+    adv = torch.tensor([1.0, 1.0, -1.0, -1.0])
+    # ratios 1.5, 0.5, 1.5, 0.5
+    new = torch.log(torch.tensor([1.5, 0.5, 1.5, 0.5]))
+    loss, cf, kl = clipped_surrogate(new, old, adv, 0.2)
+    # min(r A, clip(r) A): A>0: r=1.5 -> 1.2 (clipped), r=0.5 -> 0.5; A<0: r=1.5 -> -1.5, r=0.5 -> -0.8
+    assert float(loss) == pytest.approx(-(1.2 + 0.5 - 1.5 - 0.8) / 4)
+    assert float(cf) == 1.0 and float(kl) > 0
+    # gradient vanishes where the clip is active and the objective would improve further
+    new_p = new.clone().requires_grad_(True)
+    clipped_surrogate(new_p, old, adv, 0.2)[0].backward()
+    g = new_p.grad
+    assert g[0] == 0 and g[3] == 0 and g[1] != 0 and g[2] != 0
+    # ratio 1 -> loss = -mean(A), no clipping, zero KL
+    loss1, cf1, kl1 = clipped_surrogate(old, old, adv, 0.2)
+    assert float(loss1) == pytest.approx(0.0) and float(cf1) == 0.0 and float(kl1) == pytest.approx(0.0)
+
+
+def test_update_increases_probability_of_advantaged_actions():
+    cfg = PPOConfig(minibatch_size=64, epochs=5, entropy_coef=0.0)
+    agent = PPO(4, NVEC, cfg, seed=3)
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(256, 4)).astype(np.float32)
+    p_wp2 = lambda: float(agent.dist(torch.as_tensor(obs)).log_probs[0].exp()[:, 2].mean().detach())  # noqa: E731
+    p_before = p_wp2()
+    for _ in range(8):   # on-policy iterations: reward waypoint 2 only
+        acts, logp, _ = agent.act(obs)
+        adv = np.where(acts[:, 0] == 2, 1.0, -1.0).astype(np.float32)
+        stats = agent.update(obs, acts, logp, adv, np.zeros(256, np.float32))
+    assert p_before == pytest.approx(0.2, abs=0.05) and p_wp2() > 0.6
+    assert stats["epochs"] == 5 and 0.0 <= stats["clip_fraction"] <= 1.0
+    # target_kl stops the epochs early once the policy moved enough
+    agent2 = PPO(4, NVEC, dataclasses.replace(cfg, epochs=20, target_kl=1e-4), seed=3)
+    acts2, logp2, _ = agent2.act(obs)
+    stats2 = agent2.update(obs, acts2, logp2, adv, np.zeros(256, np.float32))
+    assert stats2["early_stop"] == 1.0 and stats2["epochs"] < 20
+
+
+def test_running_mean_std_matches_batch_statistics():
+    rng = np.random.default_rng(1)
+    x = rng.normal(3.0, 2.0, size=(1000, 3))
+    rms = RunningMeanStd(3, 1e-8, 10.0)
+    for chunk in np.array_split(x, 7):
+        rms.update(chunk)
+    np.testing.assert_allclose(rms.mean, x.mean(0), rtol=1e-10)
+    np.testing.assert_allclose(rms.var, x.var(0), rtol=1e-10)
+    z = rms.normalize(x)
+    assert abs(z.mean()) < 1e-6 + 0.01 and np.all(np.abs(z) <= 10.0)
+
+
+def test_packaged_config_has_paper_values():
+    p, t = load_config()
+    assert p.hidden_sizes == (256, 128)
+    assert (p.actor_lr, p.critic_lr, p.epochs, p.gamma, p.clip_eps) == (5e-4, 1e-3, 20, 0.99, 0.2)
+    assert t.num_envs == 2 and t.vector == "async"
+    assert isinstance(p, PPOConfig) and isinstance(t, TrainConfig)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        p.gamma = 0.5
+
+
+@pytest.mark.parametrize("text, match", [
+    ("ppo:\n  gama: 0.9\n", "unknown key.*gama"),
+    ("ppo:\n  gamma: 1.5\n", "gamma=1.5"),
+    ("ppo:\n  epochs: 2.5\n", "epochs=2.5.*integer"),
+    ("ppo:\n  activation: gelu\n", "activation"),
+    ("ppo:\n  clip_eps: 0\n", "clip_eps"),
+    ("train:\n  vector: threads\n", "vector"),
+    ("train:\n  num_envs: 0\n", "num_envs"),
+    ("trian:\n  num_envs: 2\n", "unknown section"),
+    ("ppo: [1, 2]\n", "mapping"),
+    ("ppo:\n  gamma: [0.9\n", "not valid YAML"),
+])
+def test_bad_config_names_file_and_key(tmp_path, text, match):
+    f = tmp_path / "bad.yaml"
+    f.write_text(text)
+    with pytest.raises(ValueError, match=match) as ei:
+        load_config(f)
+    assert str(f) in str(ei.value)
+
+
+def test_config_overrides_are_validated_and_missing_file_is_reported(tmp_path):
+    p, _ = load_config(ppo={"minibatch_size": 64})
+    assert p.minibatch_size == 64
+    with pytest.raises(ValueError, match="minibatch_size"):
+        load_config(ppo={"minibatch_size": -1})
+    with pytest.raises(ValueError, match="cannot read"):
+        load_config(tmp_path / "nope.yaml")
