@@ -1,4 +1,5 @@
 """World: bicycle model eq. (1)-(2), input handling, scenarios, determinism, outcomes."""
+import dataclasses
 import math
 import random
 
@@ -143,12 +144,19 @@ def test_timeout_when_standing_still(world):
 
 
 def test_leaving_the_road_is_a_collision(world):
-    world.reset(Scenario(0, "straight", 0))
-    while True:
-        r = world.step([2.0, 0.6])
-        if r.done:
-            break
+    def drive_off(w):
+        w.reset(Scenario(0, "straight", 0))
+        while True:
+            r = w.step([2.0, 0.15])   # a 9.6 m left circle from the right half of the road
+            if r.done:
+                return r
+
+    r = drive_off(world)
     assert r.outcome == "collision" and r.collided_with == "offroad"
+    assert not world.road.drivable(world.ego[0], world.ego[1])   # default: the centre left the road
+    strict = World(world.road, dataclasses.replace(world.cfg, offroad_check="corners"))
+    r_strict = drive_off(strict)
+    assert r_strict.collided_with == "offroad" and r_strict.steps < r.steps  # a body corner leaves first
 
 
 def test_collision_with_sv_ends_the_episode(world):
