@@ -240,3 +240,23 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
             wx, wy, wpsi = float(p[0]), float(p[1]), float(p[2])
             changed = True
     return np.array([wx, wy, float(cfg.speeds[a2]), wpsi], dtype=np.float64), changed
+
+
+def step_reward(cfg: RewardConfig, lane_change: bool, outcome: str | None = None, n_sv: int = 0,
+                n_pcp: int = 0, ev_speed: float = 0.0, dist_to_goal: float = 0.0) -> float:
+    """Eq. (26)-(28) for one decision: the per-step and lane-change terms, plus the terminal
+    term when ``outcome`` is set. Shared by the environment and the ROS planner node, which
+    reports episode returns to the curriculum."""
+    r = cfg.step + (cfg.lane_change if lane_change else 0.0)
+    if outcome is None:
+        return r
+    if outcome == "success":
+        return r + cfg.success_base + cfg.alpha1 * n_sv + cfg.alpha2 * n_pcp
+    if outcome not in ("collision", "timeout"):
+        raise ValueError(f"unknown outcome {outcome!r}")
+    r += min(cfg.r_f_max, cfg.alpha3 / max(float(dist_to_goal), 1e-3))
+    if outcome == "collision":
+        r += cfg.collision_base + cfg.alpha4 * n_sv * float(ev_speed)
+    else:
+        r += cfg.timeout
+    return r

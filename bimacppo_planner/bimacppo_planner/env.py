@@ -6,7 +6,6 @@ A curriculum chooses the scenario through ``reset(options={"n_sv": i, "task": j}
 """
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import gymnasium as gym
@@ -16,7 +15,7 @@ from gymnasium import spaces
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_sim import TASKS, Scenario, World, load_map
 
-from .decision import EnvConfig, WaypointTracker, decode_action, observe
+from .decision import EnvConfig, WaypointTracker, decode_action, observe, step_reward
 
 MAP_IDS = {
     "bimacppo/DualLaneIntersection-v0": "dual_lane_4way",
@@ -122,23 +121,13 @@ class IntersectionEnv(gym.Env):
             if res.done:
                 break
         self._steps += 1
-        rc = self.cfg.reward
-        reward = rc.step + (rc.lane_change if changed else 0.0)
         self._lane_changes += int(changed)
         terminated = truncated = False
         info: dict[str, Any] = {"x_imr": x_imr}
+        outcome = res.outcome if res.done else None
+        reward = step_reward(self.cfg.reward, changed, outcome, self.scenario.n_sv, int(self.world.n_pcp),
+                             float(self.world.ego[2]), float(self.world.dist_to_goal()))
         if res.done:
-            outcome = res.outcome
-            n_sv = self.scenario.n_sv
-            if outcome == "success":
-                reward += rc.success_base + rc.alpha1 * n_sv + rc.alpha2 * self.world.n_pcp
-            else:
-                d = max(float(self.world.dist_to_goal()), 1e-3)
-                reward += min(rc.r_f_max, rc.alpha3 / d)
-                if outcome == "collision":
-                    reward += rc.collision_base + rc.alpha4 * n_sv * float(self.world.ego[2])
-                elif outcome == "timeout":
-                    reward += rc.timeout
             terminated = outcome in ("success", "collision")
             truncated = outcome == "timeout"
         self._ret += reward
