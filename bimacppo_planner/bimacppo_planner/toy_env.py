@@ -191,3 +191,57 @@ class ToyScheduler:
         self.rng.bit_generator.state = d["rng"]
         self.counts = np.asarray(d["counts"], np.int64)
         self.sum_return = np.asarray(d["sum_return"], np.float64)
+
+
+def evaluate_toy(agent, n_per_sv: int = 100, seed: int = 10_000) -> dict[int, dict[str, int]]:
+    """Deterministic-policy outcomes per n_sv on fixed seeds (tasks cycled)."""
+    env = ToyIntersectionEnv()
+    out: dict[int, dict[str, int]] = {}
+    for n_sv in range(env.cfg.max_sv + 1):
+        counts = {"success": 0, "collision": 0, "timeout": 0}
+        for k in range(n_per_sv):
+            obs, _ = env.reset(seed=seed + 1000 * n_sv + k, options={"n_sv": n_sv, "task": k % N_TASKS})
+            done = False
+            while not done:
+                a, _, _ = agent.act(agent.normalize_obs(obs[None]), deterministic=True)
+                obs, _, term, trunc, info = env.step(a[0])
+                done = term or trunc
+            counts[info["outcome"]] += 1
+        out[n_sv] = counts
+    return out
+
+
+def _main() -> None:
+    """Train PPO on the toy env: a smoke test of the whole loop (python -m bimacppo_planner.toy_env)."""
+    import argparse
+    import json
+    import time
+
+    from .ppo_config import load_config
+    from .trainer import Trainer
+
+    ap = argparse.ArgumentParser(description=_main.__doc__)
+    ap.add_argument("--episodes", type=int, default=3500)
+    ap.add_argument("--run-dir", required=True)
+    ap.add_argument("--vector", choices=("sync", "async"), default="sync")
+    ap.add_argument("--num-envs", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rollout-steps", type=int, default=128)
+    ap.add_argument("--minibatch-size", type=int, default=64)
+    ap.add_argument("--resume", action="store_true")
+    args = ap.parse_args()
+    pcfg, tcfg = load_config(ppo={"minibatch_size": args.minibatch_size},
+                             train={"vector": args.vector, "num_envs": args.num_envs, "seed": args.seed,
+                                    "rollout_steps": args.rollout_steps})
+    tr = Trainer(ToyIntersectionEnv, ToyScheduler(seed=args.seed), args.run_dir, pcfg, tcfg)
+    t0 = time.monotonic()
+    res = tr.train(args.episodes, resume=args.resume)
+    wall = time.monotonic() - t0
+    print(json.dumps({"episodes": res.episodes, "env_steps": res.env_steps, "updates": res.updates,
+                      "wall_s": round(wall, 1), "steps_per_s": round(res.env_steps / wall, 1),
+                      "train_success_last_window": res.success_rate,
+                      "eval_deterministic": evaluate_toy(tr.agent)}))
+
+
+if __name__ == "__main__":
+    _main()
