@@ -48,9 +48,11 @@ _BACKTRACK = 0.5
 _MIN_STEP = 1e-10
 _EPS_ACTIVE = 1e-12      # constraint slack below this is treated as zero (active)
 _MIN_PIVOT = 1e-6        # Hessian pivots below this (relative to max |H_ii|) count as singular
-_SHIFT_GROWTH = 10.0
-_PIVOT_FLOOR = 1e-3      # modified-Cholesky pivot floor, relative to max |H_ii|
-_RHO_TRIES = 3           # active-constraint curvature rho = max|H_ii| * 10^t, t < _RHO_TRIES
+_RHO_TRIES = 4           # active-constraint curvature rho = max|H_ii| * _RHO_GROWTH^t, t < _RHO_TRIES
+_RHO_GROWTH = 10.0
+_SHIFT0 = 1e-4           # first trial diagonal shift, relative to max |H_ii|
+_SHIFT_GROWTH = 8.0      # trial shifts grow by this factor (IPOPT uses 8 too) ...
+_SHIFT_BISECT = 4        # ... then this many geometric bisection steps tighten it
 
 
 @njit(cache=True)
@@ -163,8 +165,10 @@ def build_constraints(v0, vlo, vhi, P, G, h):
 
 
 @njit(cache=True)
-def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
-    """Cost, gradient and (exact or Gauss-Newton) Hessian of the single-shooting cost."""
+def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn):
+    """Cost, gradient and (exact or Gauss-Newton) Hessian of the single-shooting cost.
+
+    Hgn receives the Gauss-Newton part (always positive definite) when exact is set."""
     N = z.size // 2
     n = 2 * N
     L = P[P_L]
@@ -236,6 +240,10 @@ def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
                 H[j, j] += 2.0 * qd
                 H[j + 2, j] -= 2.0 * qd
     if exact:
+        for j in range(n):
+            for l in range(j + 1):
+                Hgn[j, l] = H[j, l]
+                Hgn[l, j] = H[j, l]
         # costates lam[k] = d(cost of x_k..x_N)/dx_k, then curvature of each Euler step
         for i in range(4):
             lam[N, i] = 2.0 * P[P_QX + i] * (X[N, i] - xref[i])
@@ -504,64 +512,69 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws):
 
 
 @njit(cache=True)
-def convexify(H, Lh, G, b, H0, dmax):
-    """Make H positive definite where it matters, leaving the QP solution unchanged if possible.
-
-    The exact Hessian of this cost is typically indefinite only along inputs that sit on
-    their bounds (the reduced Hessian on the free inputs is positive definite at the
-    optimum). Adding rho * G_i' G_i for the constraints active at the current iterate
-    does not change the QP's KKT conditions as long as those rows stay active (G_i p = 0),
-    so it is tried first; only if that is not enough is the whole diagonal shifted
-    (Levenberg-Marquardt), which slows convergence but keeps a descent direction."""
+def _add_active_curvature(H, G, b, rho):
     n = H.shape[0]
-    m = G.shape[0]
+    for c in range(G.shape[0]):
+        if b[c] > _EPS_ACTIVE:
+            continue
+        for i in range(n):
+            gi = G[c, i]
+            if gi == 0.0:
+                continue
+            for j in range(n):
+                H[i, j] += rho * gi * G[c, j]
+
+
+@njit(cache=True)
+def _shifted_cholesky(H, H0, Lh, tau, min_pivot):
+    n = H.shape[0]
+    for i in range(n):
+        for j in range(n):
+            H[i, j] = H0[i, j]
+        H[i, i] += tau
+    return cholesky(H, Lh, n, min_pivot)
+
+
+@njit(cache=True)
+def convexify(H, Lh, G, b, H0, dmax, Hgn):
+    """Make H positive definite with the least change, keeping its negative curvature useful.
+
+    1. rho * G_i' G_i for the constraints active at the current iterate: this leaves the
+       QP's KKT conditions unchanged as long as those rows stay active (G_i p = 0); the exact
+       Hessian of this cost is often indefinite only along inputs sitting on their bounds.
+    2. Otherwise the smallest diagonal shift tau that makes it positive definite (found by
+       bisection on Cholesky success, as IPOPT's inertia correction does): with tau just
+       above -lambda_min, the step follows the negative-curvature direction far enough to
+       leave saddle points (the straight-braking saddle between a left and a right swerve),
+       which a Gauss-Newton or heavily damped step would converge to.
+    3. If even that fails numerically, the Gauss-Newton Hessian (positive definite).
+    """
+    n = H.shape[0]
+    min_pivot = _MIN_PIVOT * dmax
     H0[:, :] = H
     rho = dmax
-    for attempt in range(_RHO_TRIES):
-        for c in range(m):
-            if b[c] > _EPS_ACTIVE:
-                continue
-            for i in range(n):
-                gi = G[c, i]
-                if gi == 0.0:
-                    continue
-                for j in range(n):
-                    H[i, j] += rho * gi * G[c, j]
-        if cholesky(H, Lh, n, _MIN_PIVOT * dmax):
+    for _ in range(_RHO_TRIES):
+        _add_active_curvature(H, G, b, rho)
+        if cholesky(H, Lh, n, min_pivot):
             return True
         H[:, :] = H0
-        rho *= _SHIFT_GROWTH
-    H[:, :] = H0
-    # Gill-Murray modified Cholesky: raise the pivots just enough to keep L bounded, so the
-    # modification stays local to the variables carrying negative curvature
-    gamma = dmax
-    xi = 0.0
-    for i in range(n):
-        for j in range(i):
-            xi = max(xi, abs(H[i, j]))
-    beta2 = max(gamma, xi / math.sqrt(n * n - 1.0) if n > 1 else 0.0, 1e-300)
-    floor = _PIVOT_FLOOR * dmax
-    for j in range(n):
-        for i in range(j, n):
-            t = H[i, j]
-            for k in range(j):
-                t -= Lh[i, k] * Lh[j, k]
-            Lh[i, j] = t   # c_ij, scaled below
-        theta = 0.0
-        for i in range(j + 1, n):
-            theta = max(theta, abs(Lh[i, j]))
-        c = Lh[j, j]
-        d = c
-        if c <= _MIN_PIVOT * dmax or theta * theta / beta2 > c:
-            d = max(abs(c), theta * theta / beta2, floor)
-        H[j, j] += d - c
-        r = math.sqrt(d)
-        Lh[j, j] = r
-        for i in range(j + 1, n):
-            Lh[i, j] /= r
-        for i in range(j):
-            Lh[i, j] = 0.0
-    return True
+        rho *= _RHO_GROWTH
+    _add_active_curvature(H, G, b, rho / _RHO_GROWTH)
+    H0[:, :] = H
+    hi = _SHIFT0 * dmax
+    while not _shifted_cholesky(H, H0, Lh, hi, min_pivot):
+        hi *= _SHIFT_GROWTH
+        if hi > dmax:
+            H[:, :] = Hgn
+            return cholesky(H, Lh, n, 0.0)
+    lo = hi / _SHIFT_GROWTH
+    for _ in range(_SHIFT_BISECT):
+        mid = math.sqrt(lo * hi)
+        if _shifted_cholesky(H, H0, Lh, mid, min_pivot):
+            hi = mid
+        else:
+            lo = mid
+    return _shifted_cholesky(H, H0, Lh, hi, min_pivot)
 
 
 @njit(cache=True)
@@ -591,6 +604,7 @@ def sqp(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X):
     ws = np.empty((7, max(n, m)))
     Xt = np.empty((N + 1, 4))
     H0 = np.empty((n, n))
+    Hgn = np.empty((n, n))
     build_constraints(x0[2], vlo, vhi, P, G, h)
     nW = 0
     for c in range(m):
@@ -603,7 +617,7 @@ def sqp(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X):
             nW += 1
     J = 0.0
     for it in range(max_iter):
-        J = derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H)
+        J = derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn)
         for c in range(m):
             t = h[c]
             for i in range(n):
@@ -613,7 +627,7 @@ def sqp(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X):
         for i in range(n):
             dmax = max(dmax, abs(H[i, i]))
         if not cholesky(H, Lh, n, _MIN_PIVOT * dmax):
-            if not convexify(H, Lh, G, b, H0, dmax):
+            if not convexify(H, Lh, G, b, H0, dmax, Hgn):
                 return ST_QP, J, it
         code, nW = qp_active_set(H, Lh, g, G, b, W, nW, qp_max_iter, p, lamW, inW, Y, Ls, Sm, ws)
         gp = 0.0

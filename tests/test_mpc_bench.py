@@ -1,0 +1,37 @@
+"""The benchmark script runs end to end on a tiny sample and writes its markdown table."""
+import numpy as np
+
+from bimacppo_mpc import MPCConfig
+from bimacppo_mpc.bench import BenchConfig, generate_problems, main, make_route
+
+
+def test_routes_are_continuous_and_end_with_the_turned_heading():
+    bc = BenchConfig.load()
+    for kind, end_heading in [("straight", 0.0), ("left", np.pi / 2), ("right", -np.pi / 2)]:
+        r = make_route(kind, 10.0, bc)
+        steps = np.hypot(*np.diff(r[:, :2], axis=0).T)
+        assert steps.max() < 1.5 * bc.waypoint_spacing
+        assert r[-1, 2] == np.float64(end_heading)
+
+
+def test_generated_problems_are_closed_loop_and_within_bounds():
+    cfg, bc = MPCConfig.load(), BenchConfig.load()
+    eps = generate_problems(cfg, bc, episodes=2)
+    assert len(eps) == 2
+    for ep in eps:
+        assert ep.X0.shape == (bc.steps, 4) and ep.Xref.shape == (bc.steps, 4) and ep.Uprev.shape == (bc.steps, 2)
+        assert np.all(np.isfinite(ep.X0))
+        assert np.all((ep.X0[:, 2] >= cfg.v_min - 1e-9) & (ep.X0[:, 2] <= cfg.v_max + 1e-9))
+        assert set(np.unique(ep.Xref[:, 2])) <= set(bc.ref_speeds)
+        # successive states follow from the recorded inputs (u_prev of step k+1 = u applied at k)
+        dx = np.hypot(*np.diff(ep.X0[:, :2], axis=0).T)
+        assert np.all(dx <= cfg.dt * cfg.v_max + 1e-9)
+
+
+def test_main_writes_a_markdown_table(tmp_path, capsys):
+    out = tmp_path / "r.md"
+    assert main(["--episodes", "1", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert text.startswith("| metric | fast | ipopt |")
+    assert "median solve time" in text and "cost gap" in text and "throughput B=64" in text
+    assert "median solve time" in capsys.readouterr().out
