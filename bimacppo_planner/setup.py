@@ -35,6 +35,7 @@ setup(
             "bimacppo-graph = bimacppo_planner.ros.graph:main",
             "bimacppo-train = bimacppo_planner.cli:train_main",
             "bimacppo-evaluate = bimacppo_planner.cli:evaluate_main",
+            "bimacppo-report = bimacppo_planner.report:main",
         ],
     },
 )

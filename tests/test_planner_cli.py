@@ -91,3 +91,24 @@ def test_evaluation_seeds_are_fixed_and_distinct():
     assert len(seeds) == 1200 and min(seeds) >= EVAL_SEED_BASE
     with pytest.raises(ValueError):
         eval_seed(0, 0, 1000)
+
+
+def test_report_draws_figures_and_table_i(trained, tmp_path):
+    from bimacppo_planner.report import main as report_main
+
+    _, _, run = trained
+    out = tmp_path / "img" / "run"
+    assert report_main([str(run), "--out", str(out), "--window", "2"]) == 0
+    for suffix in ("_success.png", "_success_by_nsv.png", "_fig5_clusters.png", "_fig6_arms.png", "_probs.png"):
+        p = out.parent / (out.name + suffix)
+        assert p.is_file() and p.stat().st_size > 5_000, p
+    table = (out.parent / (out.name + "_table1.md")).read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| all |")]
+    assert rows and int(rows[0].split("|")[2]) >= 6   # every recorded episode was sampled once
+
+
+def test_report_rejects_a_directory_without_history(tmp_path, capsys):
+    from bimacppo_planner.report import main as report_main
+
+    assert report_main([str(tmp_path), "--out", str(tmp_path / "x")]) == 2
+    assert "history.jsonl" in capsys.readouterr().err
