@@ -241,7 +241,8 @@ def main(argv=None) -> int:
         ("cost gap (J_fast - J_ipopt) / J_ipopt, median", f"{_pct(gap, 50):+.2e}", ""),
         ("cost gap p99 / max", f"{_pct(gap, 99):+.2e} / {gap.max():+.2e}", ""),
         ("cost gap min (fast better)", f"{gap.min():+.2e}", ""),
-        ("problems with gap > 1%", f"{int((gap > 0.01).sum())} of {both.sum()}", ""),
+        ("problems with gap > +1% (fast worse) / < -1% (fast better)",
+         f"{int((gap > 0.01).sum())} / {int((gap < -0.01).sum())} of {both.sum()}", ""),
         ("max |u_fast - u_ipopt| median / p99", f"{_pct(du, 50):.2e} / {_pct(du, 99):.2e}", ""),
     ]
     rows += [(f"solve_batch throughput B={B}", f"{thr[B]:,.0f} problems/s", "") for B in bc.batch_sizes]
