@@ -4,21 +4,24 @@ For each state stamp s that has both /ego/odom and /objects, it publishes
 /planner/reference (x_IMR) stamped s. A new /goal_pose starts an episode
 (``hp.reset(ego, goal)``: A* on the planner's own copy of the road map); repeats of a
 stamp are answered from a cache, so the policy's internal state (waypoint tracker)
-advances once per tick exactly as in the in-process loop.
+advances once per tick exactly as in the in-process loop. As in ``IntersectionEnv``, a
+decision is taken every ``action.decision_every`` ticks of the agent's environment config
+and held in between.
 
 When the world reports the end of the episode (/episode/result), the planner republishes
 that result on /planner/episode_result with ``return`` added: the return is the agent's
-(its reward function, docs/method.md), not a fact of the world, so it is computed here.
+(``decision.step_reward``, eq. 26-28, the function the environment uses), not a fact of
+the world, so it is computed here.
 """
 from __future__ import annotations
 
 import importlib
-import pathlib
 from collections import OrderedDict
 
 import numpy as np
 from rclpy.node import Node
 
+from bimacppo_planner.decision import EnvConfig, step_reward
 from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import run_single
 
@@ -36,36 +39,37 @@ def load_class(spec: str):
         raise ValueError(f"planner_class {spec!r} is not importable: {exc}") from None
 
 
-def default_policy_path() -> str:
-    """The policy shipped inside bimacppo_planner (the agent module's DEFAULT_POLICY_PATH if set)."""
+def make_planner(spec: str, policy_path: str, map_id: str):
+    """``cls.load(policy_path, map_id)``; an empty path means the policy shipped in the package.
+
+    A missing or unusable policy file becomes a ValueError naming the file, so the node
+    exits with one ``error:`` line (runtime.run_single) instead of a traceback.
+    """
+    cls = load_class(spec)
+    from bimacppo_planner.checkpoint import CheckpointError
     try:
-        agent = importlib.import_module("bimacppo_planner.agent")
-        path = getattr(agent, "DEFAULT_POLICY_PATH", None)
-        if path:
-            return str(path)
-    except ImportError:
-        pass
-    pkg = pathlib.Path(__file__).resolve().parents[1]
-    found = sorted(pkg.rglob("*.pt"))
-    if not found:
-        raise ValueError(f"no policy_path given and no shipped policy (*.pt) under {pkg}")
-    return str(found[0])
+        return cls.load(policy_path or None, map_id)
+    except CheckpointError as exc:
+        hint = "" if policy_path else " (no policy_path given: the shipped policy was used)"
+        raise ValueError(f"planner: policy not usable: {exc}{hint}") from None
 
 
-def episode_return(step_rewards, outcome: str, facts: dict, reward_cfg) -> float:
-    """Sum of per-decision rewards + the terminal reward of eq. (26)-(28), as IntersectionEnv.step."""
-    rc = reward_cfg
-    n_sv = int(facts["n_sv"])
-    total = float(sum(step_rewards))
-    if outcome == "success":
-        return total + rc.success_base + rc.alpha1 * n_sv + rc.alpha2 * int(facts.get("n_pcp", 0))
-    d = max(float(facts.get("dist_to_goal", 1e-3)), 1e-3)
-    total += min(rc.r_f_max, rc.alpha3 / d)
-    if outcome == "collision":
-        total += rc.collision_base + rc.alpha4 * n_sv * float(facts.get("speed", 0.0))
-    elif outcome == "timeout":
-        total += rc.timeout
-    return total
+def episode_return(lane_changes, outcome: str, facts: dict, reward_cfg) -> float:
+    """The agent's return of one episode, exactly as ``IntersectionEnv`` sums it.
+
+    ``lane_changes`` holds one flag per decision. Every decision earns
+    ``step_reward(cfg, changed)``; the last one also the terminal term of eq. (26)-(28),
+    because in the environment the decision whose ticks end the episode gets it.
+    ``facts`` are the world's result key-values (n_sv, n_pcp, speed, dist_to_goal), as
+    strings or numbers; a missing fact is a KeyError, not a silently wrong return.
+    """
+    flags = [bool(c) for c in lane_changes]
+    if not flags:
+        raise ValueError("episode return: the episode has no decision")
+    total = sum(step_reward(reward_cfg, c) for c in flags[:-1])
+    return float(total + step_reward(reward_cfg, flags[-1], outcome, int(facts["n_sv"]),
+                                     int(facts["n_pcp"]), float(facts["speed"]),
+                                     float(facts["dist_to_goal"])))
 
 
 class PlannerNode(Node):
@@ -80,24 +84,27 @@ class PlannerNode(Node):
         self.declare_parameter("publish_markers", True)
         g = lambda n: self.get_parameter(n).value  # noqa: E731
         if planner is None:
-            cls = load_class(g("planner_class"))
-            path = g("policy_path") or (default_policy_path() if g("planner_class") == DEFAULT_CLASS else "")
-            planner = cls.load(path, g("map_id"))
+            planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"))
         self.hp = planner
         self.cache_size = int(g("cache_size"))
+        if self.cache_size <= 0:
+            raise ValueError(f"planner: cache_size must be > 0, got {self.cache_size}")
         self.markers_on = bool(g("publish_markers"))
-        try:
-            from bimacppo_planner.decision import EnvConfig
-            self.reward_cfg = EnvConfig.load().reward
-        except Exception as exc:  # the node still drives; only the return is unavailable
-            self.get_logger().warning(f"no reward config ({exc}): episode returns not computed")
-            self.reward_cfg = None
+        # the agent's own environment config: reward terms and decision period as in training
+        cfg = getattr(self.hp, "cfg", None)
+        if not isinstance(cfg, EnvConfig):
+            cfg = EnvConfig.load()
+        self.reward_cfg = cfg.reward
+        self.decision_every = int(cfg.action.decision_every)
         self.gate = I.EpisodeGate()
         self.states: OrderedDict = OrderedDict()
         self.objects: OrderedDict = OrderedDict()
         self.answers: OrderedDict = OrderedDict()
-        self.rewards: list = []          # (stamp, per-decision reward) of the current episode
+        self.decisions_ep: list = []     # (stamp, lane_change) of each decision of the current episode
+        self.ticks_ep = 0                # ticks answered in the current episode
+        self.x_imr = None                # the decision held between decisions (decision_every > 1)
         self.decisions = 0
+        self.returns: list = []          # episode returns published, in order (for in-process use)
         self.pub_ref = self.create_publisher(I.Odometry, I.TOPIC_REFERENCE, I.STATE_QOS)
         self.pub_markers = self.create_publisher(I.MarkerArray, I.TOPIC_PLANNER_MARKERS, I.MARKER_QOS)
         self.pub_result = self.create_publisher(I.DiagnosticStatus, I.TOPIC_PLANNER_RESULT, I.RESULT_QOS)
@@ -127,15 +134,15 @@ class PlannerNode(Node):
             return
         was_active = self.gate.goal_stamp is not None and not self.gate.ended
         self.gate.on_result(res.stamp_ns)
-        if not was_active or self.reward_cfg is None:
+        if not was_active:
             return
-        facts = I.result_extras(msg)
-        steps = [r for s, r in self.rewards if s < res.stamp_ns]
+        flags = [c for s, c in self.decisions_ep if s < res.stamp_ns]
         try:
-            ret = episode_return(steps, res.outcome, facts, self.reward_cfg)
+            ret = episode_return(flags, res.outcome, I.result_extras(msg), self.reward_cfg)
         except (KeyError, ValueError) as exc:
             self.get_logger().warning(f"episode return not computed: {exc}")
             return
+        self.returns.append(ret)
         out = I.DiagnosticStatus(level=msg.level, name=msg.name, message=msg.message,
                                  hardware_id=msg.hardware_id, values=list(msg.values))
         out.values = [kv for kv in out.values if kv.key != "return"] + [I.KeyValue(key="return", value=repr(ret))]
@@ -174,12 +181,15 @@ class PlannerNode(Node):
                 continue
             if self.gate.new_episode():
                 self.hp.reset(ego, np.asarray(self.gate.goal, dtype=float))
-                self.rewards = []
-            x_imr, info = self.hp.step(ego, svs)
-            self.decisions += 1
-            if self.reward_cfg is not None:
-                changed = bool((info or {}).get("lane_change", (info or {}).get("changed", False)))
-                self.rewards.append((stamp, self.reward_cfg.step + (self.reward_cfg.lane_change if changed else 0.0)))
+                self.decisions_ep, self.ticks_ep = [], 0
+            if self.ticks_ep % self.decision_every == 0:
+                # as IntersectionEnv.step: one decision, held for decision_every ticks
+                x_imr, info = self.hp.step(ego, svs)
+                self.x_imr = np.asarray(x_imr, dtype=float)
+                self.decisions += 1
+                self.decisions_ep.append((stamp, bool((info or {}).get("lane_change", False))))
+            self.ticks_ep += 1
+            x_imr = self.x_imr
             ref = I.reference_to_odometry(x_imr, stamp)
             self.answers[stamp] = ref
             self._bounded(self.answers)

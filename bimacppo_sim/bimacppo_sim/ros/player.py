@@ -4,8 +4,17 @@ Usage::
 
     mcap_player run.mcap --ros-args -p rate:=1.0 -p topics:="['/clock','/ego/odom','/objects','/goal_pose']"
 
-``rate`` scales the recorded log-time gaps (2.0 = twice as fast); ``rate:=0.0`` publishes
-as fast as the executor allows. Each topic is re-offered with the QoS recorded in its
+``rate`` scales the recorded gaps (2.0 = twice as fast); ``rate:=0.0`` publishes as fast
+as the executor allows. ``timing`` picks which gaps: ``log`` (default) the recorded log
+times, i.e. the wall pace of the recorded run; ``clock`` the sim time of the recorded
+/clock messages, i.e. realtime-style playback (rate 1.0 = one 0.1 s tick per 0.1 s). A
+lockstep recording needs ``clock``: its log times are the pace at which that loop
+happened to run (often many ticks per 0.1 s), not sim time.
+
+``as_world:=true`` plays exactly the world's outputs (/clock, /ego/odom, /objects,
+/objects/markers, /goal_pose, /episode/result) so that live planner and controller nodes
+can answer them; the recorded /planner/* and /control/command are then never replayed
+(they would compete with the live ones on the same topics). Each topic is re-offered with the QoS recorded in its
 channel metadata (a latched /goal_pose stays latched). A truncated or corrupt file is
 played up to its first unreadable byte and the reason is logged; a missing file or one
 without any message is a one-line error, not a traceback.
@@ -20,6 +29,8 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from rosgraph_msgs.msg import Clock as ClockMsg
 
 from . import interfaces as I
 from . import mcap_io
@@ -28,6 +39,11 @@ from .runtime import run_single
 
 BATCH = 200
 """Messages published per timer callback at most, so the executor stays responsive."""
+
+TIMINGS = ("log", "clock")
+WORLD_TOPICS = (I.TOPIC_CLOCK, I.TOPIC_EGO_ODOM, I.TOPIC_OBJECTS, I.TOPIC_MARKERS, I.TOPIC_GOAL,
+                I.TOPIC_RESULT)
+"""What the world node publishes: the player's topics when it stands in for the world."""
 
 
 def offered_qos(metadata: Dict[str, str], min_depth: int) -> QoSProfile:
@@ -58,6 +74,8 @@ class McapPlayer(Node):
         self.declare_parameter("queue_depth", 100)
         self.declare_parameter("period_s", 0.002)
         self.declare_parameter("linger_s", 1.0)
+        self.declare_parameter("timing", "log")
+        self.declare_parameter("as_world", False)
         p = self.get_parameter
         self.path = path or p("path").value
         if not self.path:
@@ -67,7 +85,16 @@ class McapPlayer(Node):
         self.rate = float(p("rate").value)
         if not self.rate >= 0.0:
             raise ValueError(f"mcap_player: rate must be >= 0 (0 = as fast as possible), got {self.rate}")
+        self.timing = p("timing").value
+        if self.timing not in TIMINGS:
+            raise ValueError(f"mcap_player: timing must be one of {TIMINGS}, got {self.timing!r}")
         self.topics = set(string_list(self, "topics"))
+        if bool(p("as_world").value):
+            if self.topics:
+                raise ValueError("mcap_player: give either topics or as_world:=true, not both")
+            self.topics = set(WORLD_TOPICS)
+        if self.timing == "clock" and self.topics and I.TOPIC_CLOCK not in self.topics:
+            raise ValueError(f"mcap_player: timing:=clock needs {I.TOPIC_CLOCK} among the played topics")
         self.exclude = set(string_list(self, "exclude"))
         self.depth = int(p("queue_depth").value)
         self.linger_s = float(p("linger_s").value)
@@ -82,7 +109,7 @@ class McapPlayer(Node):
         self._it = mcap_io.iter_mcap(self.path, self.report, topics=self.topics or None)
         self._finished_at: Optional[float] = None
         self._pending = None
-        self._t0_log: Optional[int] = None
+        self._t0_time: Optional[int] = None
         self._t0_wall: Optional[float] = None
         self._start_at = time.monotonic() + float(p("start_delay_s").value)
         self.published = 0
@@ -131,10 +158,11 @@ class McapPlayer(Node):
             if channel.topic in self.exclude:
                 self._pending = None
                 continue
-            if self._t0_log is None:
-                self._t0_log, self._t0_wall = msg.log_time, time.monotonic()
-            if self.rate > 0.0:
-                due = self._t0_wall + (msg.log_time - self._t0_log) * 1e-9 / self.rate
+            t = self._time_of(channel, msg)
+            if t is not None and self._t0_time is None:
+                self._t0_time, self._t0_wall = t, time.monotonic()
+            if self.rate > 0.0 and t is not None:
+                due = self._t0_wall + (t - self._t0_time) * 1e-9 / self.rate
                 if time.monotonic() < due:
                     return
             pub = self._publisher(schema, channel)
@@ -142,6 +170,23 @@ class McapPlayer(Node):
                 pub.publish(bytes(msg.data))
                 self.published += 1
             self._pending = None
+
+    def _time_of(self, channel, msg) -> Optional[int]:
+        """The message's time on the playback time line (ns), or None: publish right away.
+
+        With ``timing:=clock`` only /clock messages carry time (their sim time); the other
+        messages follow the /clock before them, as the world published them.
+        """
+        if self.timing == "log":
+            return msg.log_time
+        if channel.topic != I.TOPIC_CLOCK:
+            return None
+        try:
+            return I.stamp_to_ns(deserialize_message(bytes(msg.data), ClockMsg).clock)
+        except Exception as exc:  # a damaged /clock sample: keep playing, unpaced
+            self.get_logger().warning(f"undecodable /clock message ({exc}): not used for timing",
+                                      throttle_duration_sec=5.0)
+            return None
 
     def _finish(self) -> None:
         self._finished_at = time.monotonic()
