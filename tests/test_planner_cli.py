@@ -112,3 +112,14 @@ def test_report_rejects_a_directory_without_history(tmp_path, capsys):
 
     assert report_main([str(tmp_path), "--out", str(tmp_path / "x")]) == 2
     assert "history.jsonl" in capsys.readouterr().err
+
+
+def test_policy_carries_its_env_config(trained):
+    from bimacppo_planner.agent import HighLevelPlanner, env_config_of, load_policy
+    from bimacppo_planner.decision import EnvConfig
+
+    _, _, run = trained
+    pol = load_policy(run / "policy.pt")
+    assert pol.meta["curriculum"] == "bimab" and pol.meta["seed"] == 1
+    assert env_config_of(pol) == EnvConfig.load()
+    assert HighLevelPlanner(pol, __import__("bimacppo_sim").load_map("dual_lane_4way")).cfg == EnvConfig.load()

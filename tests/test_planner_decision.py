@@ -102,3 +102,16 @@ def test_env_config_defaults_and_errors(tmp_path):
     with pytest.raises(ConfigError, match="cannot read"):
         EnvConfig.load(tmp_path / "missing.yaml")
     assert EnvConfig.load(overrides={"reward.step": -0.5}).reward.step == -0.5
+
+
+def test_ego_frame_observation_keeps_sides():
+    cfg = ObservationConfig(max_sv=2, sv_clip=30.0, sv_frame="ego", pad_value=(30.0, 30.0, 0.0, 0.0))
+    ego = np.array([0.0, 0.0, 4.0, math.pi / 2])          # heading north
+    svs = np.array([[-10.0, 5.0, 8.0, 0.0],                 # ahead-left, crossing eastwards
+                    [3.0, -2.0, 4.0, math.pi / 2]])         # behind-right
+    o = observe(cfg, ego, np.array([0.0, 50.0, math.pi / 2]), svs)
+    # nearest first: the behind-right SV (dist 3.6), then ahead-left (dist 11.2)
+    np.testing.assert_allclose(o[4:6], [-2.0, -3.0], atol=1e-6)
+    np.testing.assert_allclose(o[8:10], [5.0, 10.0], atol=1e-6)
+    with pytest.raises(ConfigError, match="sv_frame"):
+        EnvConfig.from_dict({"observation": {"sv_frame": "polar"}})

@@ -52,6 +52,18 @@ def load_policy(path: str | Path | None = None) -> Policy:
         return Policy(torch.load(buf, weights_only=True), path)
 
 
+def env_config_of(policy: Policy) -> EnvConfig:
+    """The environment config a policy was trained with (stored in its metadata by
+    bimacppo-train), so that deployment observes and decodes exactly as training did."""
+    raw = policy.meta.get("env_config")
+    if raw is None:
+        return EnvConfig.load()
+    try:
+        return EnvConfig.from_dict(raw, where=f"{policy.path} (metadata env_config)")
+    except ValueError as exc:
+        raise CheckpointError(policy.path, str(exc)) from None
+
+
 def route_for(road: RoadMap, start: np.ndarray, goal: np.ndarray, world_config: WorldConfig | None = None) -> np.ndarray:
     """The A* reference waypoint set from a start pose to a goal pose on the planner's own map
     copy — the same function the world calls at reset, so both get the same waypoints."""
@@ -64,7 +76,7 @@ class HighLevelPlanner:
     def __init__(self, policy: Policy, road: RoadMap, config: EnvConfig | None = None):
         self.policy = policy
         self.road = road
-        self.cfg = config or EnvConfig.load()
+        self.cfg = config or env_config_of(policy)
         if policy.obs_dim != self.cfg.obs_dim or tuple(policy.nvec) != self.cfg.nvec:
             raise CheckpointError(policy.path, f"policy expects obs_dim={policy.obs_dim}, nvec={policy.nvec}; "
                                                 f"the environment config gives {self.cfg.obs_dim}, {self.cfg.nvec}")

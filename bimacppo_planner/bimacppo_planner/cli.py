@@ -86,10 +86,24 @@ def train_main(argv=None) -> int:
     env_fn = functools.partial(make_env, args.map, env_cfg, args.mpc)
     trainer = Trainer(env_fn, sched, run_dir, pcfg, tcfg, agent=agent)
     res = trainer.train(args.episodes, resume=args.resume)
+    _stamp_policy(run_dir / "policy.pt", env_cfg, args)
     print(f"trained {res.episodes} episodes ({res.env_steps} steps, {res.updates} updates); "
           f"success over the last {tcfg.success_window}: {100 * res.success_rate:.1f}%")
     print(f"policy: {run_dir / 'policy.pt'}   history: {res.history_path}   checkpoint: {res.last_checkpoint}")
     return 0
+
+
+def _stamp_policy(path: Path, env_cfg: EnvConfig, args) -> None:
+    """Record in the exported policy how it was trained (env config, curriculum, map, seed):
+    deployment (planner node, evaluation) rebuilds the same observation and decoding from it."""
+    import torch
+
+    from .checkpoint import atomic_torch_save
+
+    payload = torch.load(path, weights_only=True)
+    payload["meta"] = {**payload.get("meta", {}), "env_config": env_cfg.to_dict(), "curriculum": args.curriculum,
+                       "map": args.map, "seed": args.seed, "mpc": args.mpc}
+    atomic_torch_save(payload, path)
 
 
 def _eval_parser() -> argparse.ArgumentParser:

@@ -38,6 +38,7 @@ class ObservationConfig:
     sv_clip: float = 7.5
     sv_order: str = "distance"
     pad_value: tuple = (7.5, 7.5, 0.0, 0.0)
+    sv_frame: str = "paper"   # paper: |dx|, |dy| in the map frame (eq. 20); ego: signed, in the EV's frame
 
     def validate(self, where: str) -> None:
         if not (isinstance(self.max_sv, int) and 0 <= self.max_sv <= 16):
@@ -46,6 +47,8 @@ class ObservationConfig:
             raise ConfigError(f"{where}: observation.sv_clip must be a positive number, got {self.sv_clip!r}")
         if self.sv_order not in ("distance", "id"):
             raise ConfigError(f"{where}: observation.sv_order must be 'distance' or 'id', got {self.sv_order!r}")
+        if self.sv_frame not in ("paper", "ego"):
+            raise ConfigError(f"{where}: observation.sv_frame must be 'paper' or 'ego', got {self.sv_frame!r}")
         if len(self.pad_value) != 4 or not all(math.isfinite(float(v)) for v in self.pad_value):
             raise ConfigError(f"{where}: observation.pad_value must be 4 finite numbers, got {self.pad_value!r}")
 
@@ -178,12 +181,21 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
         order = np.argsort(np.hypot(svs[:, 0] - x, svs[:, 1] - y), kind="stable")
         svs = svs[order]
     c = cfg.sv_clip
+    ego_frame = cfg.sv_frame == "ego"
+    cp, sp = math.cos(psi), math.sin(psi)
     for k in range(cfg.max_sv):
         o = 4 + 4 * k
         if k < len(svs):
             sx, sy, sv, spsi = svs[k]
-            out[o] = min(abs(x - sx), c)
-            out[o + 1] = min(abs(y - sy), c)
+            if ego_frame:
+                # an extension (docs/method.md): where the SV is relative to the EV, ahead/behind and
+                # left/right kept, which eq. (20)'s absolute values discard
+                dx, dy = sx - x, sy - y
+                out[o] = min(max(cp * dx + sp * dy, -c), c)
+                out[o + 1] = min(max(-sp * dx + cp * dy, -c), c)
+            else:
+                out[o] = min(abs(x - sx), c)
+                out[o + 1] = min(abs(y - sy), c)
             out[o + 2] = v - sv
             out[o + 3] = wrap_angle(psi - spsi)
         else:

@@ -45,11 +45,11 @@ class CellResult:
 
 def _run_cell(args):
     policy_path, map_id, task, n_sv, episodes, mpc_solver = args
-    from .agent import load_policy
+    from .agent import env_config_of, load_policy
     from .env import IntersectionEnv
 
-    env = IntersectionEnv(map_id=map_id, mpc_solver=mpc_solver)
     policy = load_policy(policy_path)
+    env = IntersectionEnv(map_id=map_id, config=env_config_of(policy), mpc_solver=mpc_solver)
     counts: Counter = Counter()
     returns = []
     for k in range(episodes):
