@@ -108,14 +108,6 @@ def node():
     rclpy.try_shutdown()
 
 
-def _wait_ready(node, timeout=30.0):
-    """Planner and controller are up once their state subscriptions exist (map loading takes s)."""
-    def ready():
-        names = {i.node_name for i in node.get_subscriptions_info_by_topic(I.TOPIC_EGO_ODOM)}
-        return {"planner", "controller"} <= names
-    assert _collect(node, ready, timeout), "planner/controller did not come up"
-
-
 def _collect(node, until, timeout):
     t_end = time.monotonic() + timeout
     while not until() and time.monotonic() < t_end:
@@ -195,19 +187,36 @@ def test_graph_demo_records_every_topic(demo_mcap):
 
 
 def _recorded(mcap):
-    """Tick stamps of the recorded states and the recorded tick-stamped commands (a, delta)."""
+    """Tick stamps of the recorded states, the episodes' first stamps (goal stamps) and the
+    recorded tick-stamped commands (a, delta)."""
     from mcap_ros2.decoder import DecoderFactory
     dec = DecoderFactory()
-    ticks, cmds = [], {}
-    for sch, ch, m in mcap_io.iter_mcap(mcap, topics=[I.TOPIC_EGO_ODOM, I.TOPIC_COMMAND, I.TOPIC_RESULT]):
+    ticks, goals, cmds = [], [], {}
+    for sch, ch, m in mcap_io.iter_mcap(mcap, topics=[I.TOPIC_EGO_ODOM, I.TOPIC_COMMAND, I.TOPIC_RESULT,
+                                                      I.TOPIC_GOAL]):
         msg = dec.decoder_for("cdr", sch)(m.data)
         if ch.topic == I.TOPIC_EGO_ODOM:
             ticks.append(I.stamp_to_ns(msg.header.stamp))
+        elif ch.topic == I.TOPIC_GOAL:
+            goals.append(I.stamp_to_ns(msg.header.stamp))
         elif ch.topic == I.TOPIC_RESULT:
             ticks.remove(int({kv.key: kv.value for kv in msg.values}["stamp_ns"]))  # terminal: no answer
         else:
             cmds[I.stamp_to_ns(msg.header.stamp)] = (msg.points[0].accelerations[1], msg.points[0].positions[0])
-    return sorted(set(ticks)), cmds
+    return sorted(set(ticks)), sorted(set(goals)), cmds
+
+
+def _until_first_gap(ticks, goals, answered):
+    """The ticks of each episode before its first unanswered one: there the live planner and
+    MPC have seen exactly the recorded history (tracker, warm start), so must match it."""
+    out, gap = [], False
+    for t in ticks:
+        if t in goals:
+            gap = False
+        gap = gap or t not in answered
+        if not gap:
+            out.append(t)
+    return out
 
 
 @pytest.mark.parametrize("rate", [pytest.param(1.0, marks=pytest.mark.slow), 4.0])
@@ -215,29 +224,30 @@ def test_player_drives_planner_and_controller(node, demo_mcap, policy_file, rate
     """The recording stands in for the world: replayed in realtime style (paced by its /clock;
     rate 1.0 = 10 ticks/s, the default run uses 4.0 = 40 ticks/s to stay short), live planner
     + controller answer its states. Open loop: the player does not wait for answers, so an
-    answer may be missed under load; at least 90 % must come, and those must be the recorded
-    commands (same inputs, deterministic planner and MPC)."""
+    answer may be missed under load; at least 90 % must come, and they must be the recorded
+    commands (same inputs, deterministic planner and MPC) up to an episode's first miss."""
     mcap, rc, out = demo_mcap
     assert rc == 0, out
-    ticks, recorded_cmds = _recorded(mcap)
-    assert len(ticks) > 50 and set(ticks) <= set(recorded_cmds)
-    cmds, wall_stamped = {}, []
+    ticks, goals, recorded_cmds = _recorded(mcap)
+    assert len(ticks) > 50 and len(goals) == 2 and set(ticks) <= set(recorded_cmds)
+    cmds, other = {}, []
 
     def on_cmd(m):
         stamp = I.stamp_to_ns(m.header.stamp)
         if stamp in recorded_cmds:
             cmds.setdefault(stamp, (m.points[0].accelerations[1], m.points[0].positions[0]))
         else:
-            wall_stamped.append(stamp)
+            other.append(stamp)
     sub = node.create_subscription(I.JointTrajectory, I.TOPIC_COMMAND, on_cmd, I.STATE_QOS)
     sim_time = ("-p", "use_sim_time:=true")
     procs = [_planner(policy_file, *sim_time),
              _start("-m", "bimacppo_mpc.ros.controller_node", "--ros-args", *sim_time)]
-    _wait_ready(node)
+    # the player starts once planner and controller are matched on /ego/odom and /objects
     player = _start("-m", "bimacppo_sim.ros.player", str(mcap), "--ros-args", "-p", f"rate:={rate}",
-                    "-p", "timing:=clock", "-p", "as_world:=true", "-p", "start_delay_s:=1.0")
+                    "-p", "timing:=clock", "-p", "as_world:=true", "-p", "wait_subscribers:=2",
+                    "-p", "start_delay_s:=0.5")
     try:
-        _collect(node, lambda: player.poll() is not None, 90)
+        _collect(node, lambda: player.poll() is not None, 120)
         _collect(node, lambda: False, 0.5)
     finally:
         outs = _stop_all(procs + [player])
@@ -245,6 +255,8 @@ def test_player_drives_planner_and_controller(node, demo_mcap, policy_file, rate
     assert player.returncode == 0, outs[-1]
     answered = [t for t in ticks if t in cmds]
     assert len(answered) >= 0.9 * len(ticks), (len(answered), len(ticks), outs)
-    assert all(np.allclose(cmds[t], recorded_cmds[t], atol=1e-6) for t in answered)
-    # with use_sim_time the watchdog follows the replayed /clock: no stop was injected
-    assert not wall_stamped, wall_stamped[:5]
+    same = _until_first_gap(ticks, goals, set(answered))
+    assert len(same) >= 0.5 * len(ticks), (len(same), len(ticks))
+    assert all(np.allclose(cmds[t], recorded_cmds[t], atol=1e-6) for t in same)
+    # with use_sim_time the watchdog follows the replayed /clock: no safe stop was injected
+    assert not other, other[:5]

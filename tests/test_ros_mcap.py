@@ -136,8 +136,10 @@ def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
                                    I.STATE_QOS, raw=True)
     latched = []
     gsub = node.create_subscription(I.PoseStamped, I.TOPIC_GOAL, latched.append, I.LATCHED_QOS)
+    # wait_subscribers: start only once this node's reader is matched (a loaded machine can
+    # take longer than any fixed delay, and volatile samples sent before the match are lost)
     play = _start("bimacppo_sim.ros.player", str(path), "--ros-args", "-p", "rate:=4.0",
-                  "-p", "start_delay_s:=1.0")
+                  "-p", "wait_subscribers:=1", "-p", "start_delay_s:=0.3")
     t_end = time.monotonic() + PROC_TIMEOUT
     while play.poll() is None and time.monotonic() < t_end:
         _spin(node, 0.05)

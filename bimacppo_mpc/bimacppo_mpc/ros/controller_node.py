@@ -42,6 +42,7 @@ class ControllerNode(Node):
         self.cache_size = int(g("cache_size"))
         if self.timeout_ns <= 0 or self.cache_size <= 0:
             raise ValueError("controller: watchdog_timeout_s and cache_size must be > 0")
+        self._warm_up()
         self.gate = I.EpisodeGate()
         self.u_prev = np.zeros(2)
         self.states: OrderedDict = OrderedDict()     # stamp -> x0
@@ -58,6 +59,18 @@ class ControllerNode(Node):
         self.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM, self._on_odom, I.STATE_QOS)
         self.create_subscription(I.Odometry, I.TOPIC_REFERENCE, self._on_reference, I.STATE_QOS)
         self.create_timer(self.timeout_ns / I.NS_PER_S / 2.0, self._watchdog)
+
+    def _warm_up(self) -> None:
+        """One throw-away solve before any subscription exists.
+
+        The first solve loads / compiles the numba kernels (0.3 s measured on the dev box,
+        more under load). Inside the first tick that stalls the loop: a lockstep world
+        just waits, but an open-loop source (realtime world, MCAP player) runs on and the
+        keep_last queues drop the ticks published meanwhile (measured with the player at
+        100 ticks/s: ticks 2..68 of the recording lost). The solver state is reset after.
+        """
+        self.ctrl.solve(np.array([0.0, 0.0, 1.0, 0.0]), np.array([5.0, 0.0, 1.0, 0.0]), np.zeros(2))
+        self.ctrl.reset()
 
     def _bounded(self, d: OrderedDict) -> None:
         while len(d) > self.cache_size:

@@ -14,7 +14,13 @@ happened to run (often many ticks per 0.1 s), not sim time.
 ``as_world:=true`` plays exactly the world's outputs (/clock, /ego/odom, /objects,
 /objects/markers, /goal_pose, /episode/result) so that live planner and controller nodes
 can answer them; the recorded /planner/* and /control/command are then never replayed
-(they would compete with the live ones on the same topics). Each topic is re-offered with the QoS recorded in its
+(they would compete with the live ones on the same topics).
+
+``wait_subscribers:=N`` holds the start until the /ego/odom publisher has at least N
+matched subscribers (every consumer of the world's state reads it: planner and
+controller make 2), then waits ``start_delay_s``: a replay is
+open loop, and a tick published before the planner and controller are matched is lost
+for good (volatile QoS). Stand-in use therefore passes ``wait_subscribers:=2``. Each topic is re-offered with the QoS recorded in its
 channel metadata (a latched /goal_pose stays latched). A truncated or corrupt file is
 played up to its first unreadable byte and the reason is logged; a missing file or one
 without any message is a one-line error, not a traceback.
@@ -44,6 +50,8 @@ TIMINGS = ("log", "clock")
 WORLD_TOPICS = (I.TOPIC_CLOCK, I.TOPIC_EGO_ODOM, I.TOPIC_OBJECTS, I.TOPIC_MARKERS, I.TOPIC_GOAL,
                 I.TOPIC_RESULT)
 """What the world node publishes: the player's topics when it stands in for the world."""
+WAIT_TOPIC = I.TOPIC_EGO_ODOM
+WAIT_LOG_PERIOD_S = 5.0
 
 
 def offered_qos(metadata: Dict[str, str], min_depth: int) -> QoSProfile:
@@ -76,6 +84,7 @@ class McapPlayer(Node):
         self.declare_parameter("linger_s", 1.0)
         self.declare_parameter("timing", "log")
         self.declare_parameter("as_world", False)
+        self.declare_parameter("wait_subscribers", 0)
         p = self.get_parameter
         self.path = path or p("path").value
         if not self.path:
@@ -111,7 +120,15 @@ class McapPlayer(Node):
         self._pending = None
         self._t0_time: Optional[int] = None
         self._t0_wall: Optional[float] = None
-        self._start_at = time.monotonic() + float(p("start_delay_s").value)
+        self.wait_subscribers = int(p("wait_subscribers").value)
+        if self.wait_subscribers < 0:
+            raise ValueError(f"mcap_player: wait_subscribers must be >= 0, got {self.wait_subscribers}")
+        self._start_delay = float(p("start_delay_s").value)
+        self._start_at: Optional[float] = None if self.wait_subscribers else time.monotonic() + self._start_delay
+        self._waiting_since = time.monotonic()
+        if self.wait_subscribers and not any(pb is not None and pb.topic_name == WAIT_TOPIC
+                                             for pb in self._pubs.values()):
+            raise ValueError(f"mcap_player: wait_subscribers needs {WAIT_TOPIC} among the played topics")
         self.published = 0
         self.done = False
         self.exit_code = 0
@@ -147,7 +164,9 @@ class McapPlayer(Node):
             # linger: late (transient_local) readers and reliable resends still get served
             self.done = time.monotonic() >= self._finished_at + self.linger_s
             return
-        if time.monotonic() < self._start_at:
+        if self._start_at is None and self._matched():
+            self._start_at = time.monotonic() + self._start_delay
+        if self._start_at is None or time.monotonic() < self._start_at:
             return
         for _ in range(BATCH):
             item = self._next()
@@ -170,6 +189,17 @@ class McapPlayer(Node):
                 pub.publish(bytes(msg.data))
                 self.published += 1
             self._pending = None
+
+    def _matched(self) -> bool:
+        """The /ego/odom publisher has ``wait_subscribers`` matched readers (logs while not)."""
+        pubs = [pb for pb in self._pubs.values() if pb is not None and pb.topic_name == WAIT_TOPIC]
+        if all(pb.get_subscription_count() >= self.wait_subscribers for pb in pubs):
+            return True
+        if time.monotonic() - self._waiting_since > WAIT_LOG_PERIOD_S:
+            self._waiting_since = time.monotonic()
+            counts = {pb.topic_name: pb.get_subscription_count() for pb in pubs}
+            self.get_logger().info(f"waiting for {self.wait_subscribers} subscribers: {counts}")
+        return False
 
     def _time_of(self, channel, msg) -> Optional[int]:
         """The message's time on the playback time line (ns), or None: publish right away.
