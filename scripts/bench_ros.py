@@ -63,7 +63,7 @@ class TimedWorld(WorldNode):
         self.engaged = False
         self.ep_start = 0
         self.seed = 0
-        self.running = True
+        self.running = False     # set by start(): no episode before the peers are up
 
     def _publish_state(self):
         self.t_pub.setdefault(self.stamp_ns(), time.perf_counter())
@@ -91,6 +91,7 @@ class TimedWorld(WorldNode):
             self.start()
 
     def start(self):
+        self.running = True
         self.seed += 1
         self.set_parameters([Parameter("scenario.n_sv", value=SCENARIO["n_sv"]),
                              Parameter("scenario.task", value=SCENARIO["task"]),
@@ -124,11 +125,14 @@ def start_peers(layout, policy, ex):
     return [], procs
 
 
-def wait_peers(world, ex, procs):
+def wait_peers(world, ex, procs, before):
+    """Until planner and controller of *this* configuration are matched: their /ego/odom
+    readers must be new endpoints (a stopped peer lingers in the graph for a while)."""
     t_end = time.monotonic() + STARTUP_TIMEOUT_S
     while time.monotonic() < t_end:
-        names = {i.node_name for i in world.get_subscriptions_info_by_topic(I.TOPIC_EGO_ODOM)}
-        if {"planner", "controller"} <= names and world.pub_odom.get_subscription_count() >= 2:
+        new = [i for i in world.get_subscriptions_info_by_topic(I.TOPIC_EGO_ODOM)
+               if bytes(i.endpoint_gid) not in before]
+        if {"planner", "controller"} <= {i.node_name for i in new} and world.pub_odom.get_subscription_count() >= 2:
             break
         for p in procs:
             if p.poll() is not None:
@@ -136,7 +140,7 @@ def wait_peers(world, ex, procs):
         ex.spin_once(timeout_sec=0.05)
     else:
         raise RuntimeError("planner/controller did not come up")
-    t_end = time.monotonic() + 0.5  # let the matches settle on both sides
+    t_end = time.monotonic() + 0.5  # let the matches settle on the readers' side too
     while time.monotonic() < t_end:
         ex.spin_once(timeout_sec=0.05)
 
@@ -158,9 +162,10 @@ def run_config(layout, policy, mode, rate_factor, n_ticks):
     ex = SingleThreadedExecutor()
     world = make_world(mode, rate_factor)
     ex.add_node(world)
+    before = {bytes(i.endpoint_gid) for i in world.get_subscriptions_info_by_topic(I.TOPIC_EGO_ODOM)}
     nodes, procs = start_peers(layout, policy, ex)
     try:
-        wait_peers(world, ex, procs)
+        wait_peers(world, ex, procs, before)
         world.start()
         count = (lambda: len(world.latency)) if mode == "lockstep" else (lambda: len(world.steps))
         t_end = time.monotonic() + max(60.0, 5.0 * n_ticks / (10.0 * rate_factor))
@@ -188,12 +193,12 @@ def realtime_figures(steps, rate_factor):
     engaged = [s for s in steps if s[2]]
     stale = sum(1 for s in engaged if s[1] is None or s[1] * 0.1 > 0.3 + 1e-9)
     target = 10.0 * rate_factor
-    achieved = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 else 0.0
+    achieved = float((len(t) - 1) / (t[-1] - t[0])) if len(t) > 1 else 0.0
     return {"target_hz": target, "achieved_hz": achieved,
             "age_median": float(np.median(ages)) if ages else float("nan"),
             "age_max": float(max(ages)) if ages else float("nan"),
             "stale": stale, "engaged": len(engaged), "ticks": len(steps),
-            "sustained": achieved >= (1 - RATE_TOLERANCE) * target and stale == 0 and len(engaged) > 0}
+            "sustained": bool(achieved >= (1 - RATE_TOLERANCE) * target and stale == 0 and len(engaged) > 0)}
 
 
 def pick_policy(arg, tmp):

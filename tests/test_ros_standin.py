@@ -157,3 +157,29 @@ def test_planner_and_controller_answer_a_plain_publisher(policy_file):
     # the planner computed the agent's return for each episode the source ended
     assert [r.outcome for r in returns] == [o for o, _ in world.outcomes]
     assert all(r.episode_return is not None and math.isfinite(r.episode_return) for r in returns)
+
+
+@pytest.mark.parametrize("scenario", EPISODES)
+def test_planner_node_return_is_the_environment_return(policy_file, scenario):
+    """``planner_node.episode_return`` (what /planner/episode_result carries) summed over an
+    ``IntersectionEnv`` episode driven by the same policy equals the env's own return."""
+    from bimacppo_planner.agent import load_policy
+    from bimacppo_planner.env import IntersectionEnv
+    from bimacppo_planner.ros.planner_node import episode_return
+    env = IntersectionEnv(MAP)
+    policy = load_policy(policy_file)
+    obs, _ = env.reset(options={"n_sv": scenario.n_sv, "task": scenario.task, "scenario_seed": scenario.seed})
+    flags, done, info = [], False, {}
+    while not done:
+        before = env._lane_changes
+        obs, _, term, trunc, info = env.step(policy.act(obs, deterministic=True))
+        flags.append(env._lane_changes > before)
+        done = term or trunc
+    facts = {"n_sv": str(info["n_sv"]), "n_pcp": str(info["n_pcp"]),   # as the world's result carries them
+             "speed": repr(float(env.world.ego[2])), "dist_to_goal": repr(float(env.world.dist_to_goal()))}
+    assert episode_return(flags, info["outcome"], facts, env.cfg.reward) == pytest.approx(info["episode_return"],
+                                                                                          abs=1e-9)
+    with pytest.raises(KeyError):
+        episode_return(flags, info["outcome"], {k: v for k, v in facts.items() if k != "speed"}, env.cfg.reward)
+    with pytest.raises(ValueError, match="no decision"):
+        episode_return([], info["outcome"], facts, env.cfg.reward)
