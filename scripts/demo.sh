@@ -17,9 +17,12 @@ export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
 export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$((100 + $$ % 100))}"
 echo ">> colcon build (ros2_ws)"
-(cd "$ROOT/ros2_ws" && colcon build --event-handlers console_cohesion- summary+ >/dev/null)
+(cd "$ROOT/ros2_ws" && colcon build > "$ROOT/ros2_ws/colcon-build.log" 2>&1) || { echo "colcon build failed: see ros2_ws/colcon-build.log" >&2; exit 1; }
+# colcon's setup scripts read unset variables: relax -u while sourcing
+set +u
 # shellcheck disable=SC1091
 source "$ROOT/ros2_ws/install/setup.bash"
+set -u
 OUT="${OUT:-$ROOT/runs/demo-$(date +%Y%m%d-%H%M%S)}"
 echo ">> running the node graph (lockstep), recording to $OUT"
 mkdir -p "$OUT"
