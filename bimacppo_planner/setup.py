@@ -36,6 +36,7 @@ setup(
             "bimacppo-train = bimacppo_planner.cli:train_main",
             "bimacppo-evaluate = bimacppo_planner.cli:evaluate_main",
             "bimacppo-report = bimacppo_planner.report:main",
+            "bimacppo-experiments = bimacppo_planner.experiments:main",
         ],
     },
 )

@@ -70,10 +70,13 @@ class IntersectionEnv(gym.Env):
         return observe(self.cfg.observation, self.world.ego, self.world.goal, self.world.sv_states())
 
     def scenario_from_options(self, options: dict | None) -> Scenario:
+        """``n_slow`` (optional): how many SVs drive slowly (overtaking fine-tuning, paper §IV-C);
+        an int in 0..n_sv, or None to let the world draw it uniformly in 0..n_sv; absent keeps
+        the Scenario default (no slow SV), so the intersection protocol is unchanged."""
         options = dict(options or {})
-        unknown = set(options) - {"n_sv", "task", "scenario_seed"}
+        unknown = set(options) - {"n_sv", "task", "scenario_seed", "n_slow"}
         if unknown:
-            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; expected n_sv, task, scenario_seed")
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; expected n_sv, task, scenario_seed, n_slow")
         rng = self.np_random
         n_sv = options.get("n_sv")
         n_sv = int(rng.integers(0, self.max_sv + 1)) if n_sv is None else int(n_sv)
@@ -83,7 +86,16 @@ class IntersectionEnv(gym.Env):
         task = self.tasks[int(rng.integers(0, len(self.tasks)))] if task is None else TASKS[task_index(task)]
         seed = options.get("scenario_seed")
         seed = int(rng.integers(0, 2**31 - 1)) if seed is None else int(seed)
-        return Scenario(n_sv=n_sv, task=task, seed=seed)
+        if "n_slow" not in options:
+            return Scenario(n_sv=n_sv, task=task, seed=seed)
+        n_slow = options["n_slow"]
+        if n_slow is not None:
+            if isinstance(n_slow, bool) or not isinstance(n_slow, (int, np.integer)):
+                raise ValueError(f"reset option n_slow must be None or an integer, got {n_slow!r}")
+            if not 0 <= n_slow <= n_sv:
+                raise ValueError(f"reset option n_slow={n_slow} out of range 0..n_sv={n_sv}")
+            n_slow = int(n_slow)
+        return Scenario(n_sv=n_sv, task=task, seed=seed, n_slow=n_slow)
 
     # -- gym API ---------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
