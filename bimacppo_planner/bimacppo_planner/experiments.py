@@ -146,7 +146,7 @@ class ExperimentConfig:
     evaluation: EvalSection
     overtake: OvertakeSection
     report: ReportSection
-    source: str = str(CONFIG_PATH)
+    source: str = "bimacppo_planner/config/experiments.yaml (packaged)"
 
     # -- layout: one place decides where everything lives ---------------------------------
     def run_dir(self, method: str, seed: int, map_id: str | None = None) -> Path:
@@ -251,7 +251,8 @@ def load_experiment_config(path: str | os.PathLike | None = None, overrides: Map
     if kw["zero_shot_map"] == "three_lane_straight" or kw["train_map"] == "three_lane_straight":
         raise ExperimentError(f"{origin.get('train_map')}: train_map / zero_shot_map must be intersections "
                               "(three_lane_straight is the overtaking map, see the 'overtake' section)")
-    return ExperimentConfig(**kw, source=str(path) if path is not None else str(CONFIG_PATH))
+    label = "bimacppo_planner/config/experiments.yaml (packaged)"
+    return ExperimentConfig(**kw, source=f"{path} over {label}" if path is not None else label)
 
 
 # ----------------------------------------------------------------------------------------------
