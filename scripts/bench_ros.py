@@ -271,10 +271,12 @@ def print_table(args, lock, rt):
     print()
     for l in lay:
         ok = [rf for rf in args.rates if rt[(l, rf)]["sustained"]]
-        best = max(ok) * 10 if ok else 0.0
-        print(f"{l}: highest rate sustained without stale commands: {best:.0f} Hz "
+        if not ok:
+            print(f"{l}: none of the rate factors tried was sustained without stale commands")
+            continue
+        best = max(ok) * 10
+        print(f"{l}: highest rate tried that was sustained without stale commands: {best:.0f} Hz "
               f"(target >= {TARGET_HZ:.0f} Hz: {'met' if best >= TARGET_HZ else 'NOT met'})")
-
 
 if __name__ == "__main__":
     raise SystemExit(main())

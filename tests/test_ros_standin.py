@@ -183,3 +183,19 @@ def test_planner_node_return_is_the_environment_return(policy_file, scenario):
         episode_return(flags, info["outcome"], {k: v for k, v in facts.items() if k != "speed"}, env.cfg.reward)
     with pytest.raises(ValueError, match="no decision"):
         episode_return([], info["outcome"], facts, env.cfg.reward)
+
+
+def test_planner_node_policy_selection(tmp_path):
+    """No policy_path: the policy shipped in bimacppo_planner; a bad path: one clear error."""
+    from bimacppo_planner.agent import shipped_policy_path
+    from bimacppo_planner.ros.planner_node import PlannerNode
+    rclpy.init()
+    try:
+        with pytest.raises(ValueError, match="nope.pt"):
+            PlannerNode(parameter_overrides=[Parameter("policy_path", value=str(tmp_path / "nope.pt"))])
+        if shipped_policy_path().is_file():
+            node = PlannerNode()
+            assert node.hp.policy.path == str(shipped_policy_path())
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
