@@ -24,7 +24,7 @@ from std_srvs.srv import Trigger
 
 from bimacppo_curriculum import make_scheduler
 from bimacppo_sim.ros import interfaces as I
-from bimacppo_sim.ros.runtime import run_single
+from bimacppo_sim.ros.runtime import guarded, param_range, run_single
 
 TASKS = ("left", "straight", "right")  # architecture.md: task index j -> name
 
@@ -61,7 +61,9 @@ class CurriculumNode(Node):
         world = g("world_node").strip("/")
         self.cli_params = self.create_client(SetParameters, f"/{world}/set_parameters")
         self.cli_reset = self.create_client(Trigger, f"/{world}/reset")
-        self.create_subscription(I.DiagnosticStatus, g("result_topic"), self._on_result, I.RESULT_QOS)
+        self.dropped: dict = {}
+        self.create_subscription(I.DiagnosticStatus, g("result_topic"),
+                                 guarded(self, g("result_topic"), self._on_result, self.dropped), I.RESULT_QOS)
         self.create_service(Trigger, I.SRV_CURRICULUM_NEXT, self._on_next)
         self.done = False
         self.finished = 0
@@ -70,7 +72,9 @@ class CurriculumNode(Node):
         self.current = None        # (i, j, seed) of the running episode
         self._busy = False         # a set/reset round trip is in flight
         self._warned = False
-        self.create_timer(float(g("retry_period_s")), self._kick,
+        retry = float(param_range(g("retry_period_s"), "retry_period_s", "curriculum", lo=0.0, hi=60.0,
+                                  lo_open=True))
+        self.create_timer(retry, self._kick,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ------------------------------------------------------------------ cycle
@@ -123,11 +127,7 @@ class CurriculumNode(Node):
                                f"seed={scen[2]} ({resp.message})")
 
     def _on_result(self, msg) -> None:
-        try:
-            res = I.status_to_result(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored result: {exc}")
-            return
+        res = I.status_to_result(msg)
         if self.current is None:
             return
         i, j, seed = self.current

@@ -11,6 +11,14 @@ Watchdog: if no reference or no state arrived for ``watchdog_timeout_s`` of ROS 
 (sim time when ``use_sim_time``), a safe-stop command (a_min of the MPC bounds, steering
 held) is published every check. In lockstep, sim time only advances when the loop runs,
 so the watchdog cannot inject commands there; it acts in realtime and deployment.
+
+Faults (docs/faults.md): every callback is ``runtime.guarded`` (a bad message is dropped
+with a throttled warning, the node never dies of one); references older than the newest
+answered one of the episode, or more than ``max_stamp_jump_s`` ahead of it, are dropped
+(``StampFilter``); a goal or result stamped that far ahead of every state seen is
+dropped too (it would stall the episode); a goal older than the current one means the
+source restarted (time went back): the episode state is reset. A solve that yields a
+non-finite input is answered with the safe stop instead.
 """
 from __future__ import annotations
 
@@ -21,7 +29,9 @@ from rclpy.node import Node
 
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_sim.ros import interfaces as I
-from bimacppo_sim.ros.runtime import run_single
+from bimacppo_sim.ros.runtime import ConfigError, guarded, param_file, param_range, run_single
+
+SOLVERS = ("fast", "ipopt")
 
 
 class ControllerNode(Node):
@@ -34,14 +44,23 @@ class ControllerNode(Node):
         self.declare_parameter("watchdog_timeout_s", 0.5)
         self.declare_parameter("publish_horizon", True)
         self.declare_parameter("cache_size", 64)
+        self.declare_parameter("max_stamp_jump_s", 1.0)
         g = lambda n: self.get_parameter(n).value  # noqa: E731
-        self.cfg = MPCConfig.load(g("config")) if g("config") else MPCConfig.load()
+        name = "controller"
+        if g("solver") not in SOLVERS:
+            raise ConfigError(f"{name}: parameter solver must be one of {SOLVERS}, got {g('solver')!r}")
+        cfg_path = param_file(g("config"), "config", name) if g("config") else None
+        self.cfg = MPCConfig.load(cfg_path)
         self.ctrl = make_controller(self.cfg, solver=g("solver"))
-        self.timeout_ns = int(float(g("watchdog_timeout_s")) * I.NS_PER_S)
+        self.timeout_ns = int(float(param_range(g("watchdog_timeout_s"), "watchdog_timeout_s", name,
+                                                lo=0.0, hi=60.0, lo_open=True)) * I.NS_PER_S)
         self.horizon = bool(g("publish_horizon"))
-        self.cache_size = int(g("cache_size"))
-        if self.timeout_ns <= 0 or self.cache_size <= 0:
-            raise ValueError("controller: watchdog_timeout_s and cache_size must be > 0")
+        self.cache_size = int(param_range(g("cache_size"), "cache_size", name, lo=1, hi=100_000))
+        jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", name,
+                                        lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
+        self.order = I.StampFilter(jump_ns)
+        self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
+        self._newest_state = None        # newest state stamp received (bounds goal/result stamps)
         self._warm_up()
         self.gate = I.EpisodeGate()
         self.u_prev = np.zeros(2)
@@ -54,10 +73,12 @@ class ControllerNode(Node):
         self._last_state = None
         self.pub = self.create_publisher(I.JointTrajectory, I.TOPIC_COMMAND, I.STATE_QOS)
         # goal/result first: when several are ready at once, the executor serves them first
-        self.create_subscription(I.PoseStamped, I.TOPIC_GOAL, self._on_goal, I.LATCHED_QOS)
-        self.create_subscription(I.DiagnosticStatus, I.TOPIC_RESULT, self._on_result, I.RESULT_QOS)
-        self.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM, self._on_odom, I.STATE_QOS)
-        self.create_subscription(I.Odometry, I.TOPIC_REFERENCE, self._on_reference, I.STATE_QOS)
+        sub = lambda typ, topic, fn, qos: self.create_subscription(  # noqa: E731
+            typ, topic, guarded(self, topic, fn, self.dropped), qos)
+        sub(I.PoseStamped, I.TOPIC_GOAL, self._on_goal, I.LATCHED_QOS)
+        sub(I.DiagnosticStatus, I.TOPIC_RESULT, self._on_result, I.RESULT_QOS)
+        sub(I.Odometry, I.TOPIC_EGO_ODOM, self._on_odom, I.STATE_QOS)
+        sub(I.Odometry, I.TOPIC_REFERENCE, self._on_reference, I.STATE_QOS)
         self.create_timer(self.timeout_ns / I.NS_PER_S / 2.0, self._watchdog)
 
     def _warm_up(self) -> None:
@@ -79,44 +100,55 @@ class ControllerNode(Node):
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
 
+    def _check_ahead(self, stamp: int, what: str) -> None:
+        """A goal/result far ahead of every state seen would park the episode: refuse it."""
+        if self._newest_state is not None and stamp - self._newest_state > self.order.max_jump_ns:
+            raise I.MessageError(f"{what} stamp {stamp} ns is more than {self.order.max_jump_ns} ns "
+                                 f"ahead of the newest state ({self._newest_state} ns)")
+
+    def _restart(self) -> None:
+        """The source's time went back (world restarted): forget the old episode."""
+        self.gate = I.EpisodeGate()
+        self.states.clear(), self.pending.clear(), self.answers.clear()
+        self.order.reset()
+        self._newest_state = None
+
     def _on_goal(self, msg) -> None:
-        try:
-            goal = I.pose_to_goal(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored goal: {exc}")
-            return
-        self.gate.on_goal(I.stamp_to_ns(msg.header.stamp), goal)
+        goal = I.pose_to_goal(msg)
+        stamp = I.stamp_to_ns(msg.header.stamp)
+        self._check_ahead(stamp, "goal")
+        if self.gate.goal_stamp is not None and stamp < self.gate.goal_stamp:
+            self.get_logger().warning(f"goal stamp went back ({stamp} < {self.gate.goal_stamp} ns): "
+                                      "source restarted? starting over")
+            self._restart()
+        self.gate.on_goal(stamp, goal)
         self._process()
 
     def _on_result(self, msg) -> None:
-        try:
-            res = I.status_to_result(msg)
-        except I.MessageError:
-            return
+        res = I.status_to_result(msg)
+        self._check_ahead(res.stamp_ns, "result")
         self.gate.on_result(res.stamp_ns)
 
     def _on_odom(self, msg) -> None:
-        try:
-            x = I.odometry_to_state(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored state: {exc}")
-            return
-        self.states[I.stamp_to_ns(msg.header.stamp)] = x
+        x = I.odometry_to_state(msg)
+        stamp = I.stamp_to_ns(msg.header.stamp)
+        self._newest_state = stamp if self._newest_state is None else max(self._newest_state, stamp)
+        self.states[stamp] = x
         self._bounded(self.states)
         self._last_state = self._now()
         self._process()
 
     def _on_reference(self, msg) -> None:
-        try:
-            x_ref = I.odometry_to_reference(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored reference: {exc}")
-            return
+        x_ref = I.odometry_to_reference(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
-        self._last_ref = self._now()
         if stamp in self.answers:
+            self._last_ref = self._now()
             self.pub.publish(self.answers[stamp])
             return
+        why = self.order.check(stamp)
+        if why is not None:
+            raise I.MessageError(f"reference stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
+        self._last_ref = self._now()
         self.pending[stamp] = x_ref
         self._bounded(self.pending)
         self._process()
@@ -133,13 +165,32 @@ class ControllerNode(Node):
             if self.gate.new_episode():
                 self.ctrl.reset()
                 self.u_prev = np.zeros(2)
-            sol = self.ctrl.solve(self.states[stamp], x_ref, self.u_prev)
+                self.order.reset()
+            if self.order.check(stamp) is not None:
+                continue  # an older reference answered meanwhile
+            try:
+                sol = self.ctrl.solve(self.states[stamp], x_ref, self.u_prev)
+                u = np.asarray(sol.u, dtype=float)
+                ok = u.shape == (2,) and bool(np.all(np.isfinite(u)))  # not ok: the core's own fallback
+            except Exception as exc:  # noqa: BLE001 - a solver failure must not kill the node
+                sol, ok = None, False
+                self.get_logger().error(f"MPC solve raised at {stamp} ns: {type(exc).__name__}: {exc}",
+                                        throttle_duration_sec=1.0)
             self.solves += 1
-            if not sol.ok:
+            self.order.answered(stamp)
+            if sol is not None and not sol.ok:
                 self.failures += 1
                 self.get_logger().warning(f"MPC fallback at {stamp} ns: {sol.status}", throttle_duration_sec=1.0)
-            self.u_prev = np.asarray(sol.u, dtype=float)
-            cmd = I.command_to_trajectory(sol.u, stamp, sol.U if self.horizon else None, self.cfg.dt)
+            if not ok:
+                # non-finite input or the solver raised: the safe stop, never a NaN on the wire
+                u = np.array([self.cfg.a_min, float(self.u_prev[1]) if np.isfinite(self.u_prev[1]) else 0.0])
+                horizon = None
+            else:
+                horizon = np.asarray(sol.U, dtype=float) if self.horizon else None
+                if horizon is not None and not np.all(np.isfinite(horizon)):
+                    horizon = None
+            self.u_prev = u
+            cmd = I.command_to_trajectory(u, stamp, horizon, self.cfg.dt)
             self.answers[stamp] = cmd
             self._bounded(self.answers)
             self.pub.publish(cmd)

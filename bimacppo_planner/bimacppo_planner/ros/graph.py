@@ -100,8 +100,11 @@ def run(args) -> int:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(rclpy.utilities.remove_ros_args(["x"] + argv)[1:])
-    rclpy.init(args=["bimacppo-graph"] + argv,
-               signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    try:
+        runtime.init(["bimacppo-graph"] + argv)
+    except runtime.ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return runtime.EXIT_CONFIG_ERROR
     try:
         return run(args)
     finally:

@@ -12,6 +12,13 @@ When the world reports the end of the episode (/episode/result), the planner rep
 that result on /planner/episode_result with ``return`` added: the return is the agent's
 (``decision.step_reward``, eq. 26-28, the function the environment uses), not a fact of
 the world, so it is computed here.
+
+Faults (docs/faults.md): callbacks are ``runtime.guarded``; states older than the newest
+answered one of the episode or more than ``max_stamp_jump_s`` ahead are dropped
+(``StampFilter``), as are goals/results stamped that far ahead of every state seen; a goal
+older than the current one (the source restarted) resets the episode state; a policy step
+that raises or returns a non-finite x_IMR is logged and that tick left unanswered (the
+controller's watchdog then stops the vehicle).
 """
 from __future__ import annotations
 
@@ -23,7 +30,7 @@ from rclpy.node import Node
 
 from bimacppo_planner.decision import EnvConfig, step_reward
 from bimacppo_sim.ros import interfaces as I
-from bimacppo_sim.ros.runtime import run_single
+from bimacppo_sim.ros.runtime import ConfigError, guarded, one_line, param_file, param_range, run_single
 
 DEFAULT_CLASS = "bimacppo_planner.agent:HighLevelPlanner"
 
@@ -47,11 +54,15 @@ def make_planner(spec: str, policy_path: str, map_id: str):
     """
     cls = load_class(spec)
     from bimacppo_planner.checkpoint import CheckpointError
+    if policy_path:
+        param_file(policy_path, "policy_path", "planner")
     try:
         return cls.load(policy_path or None, map_id)
-    except CheckpointError as exc:
+    except (CheckpointError, ValueError, KeyError, TypeError, RuntimeError, OSError) as exc:
+        # RuntimeError/KeyError/TypeError: torch refusing a state dict of the wrong shape
+        # or layout; OSError: unreadable; ValueError: a bad map_id or config
         hint = "" if policy_path else " (no policy_path given: the shipped policy was used)"
-        raise ValueError(f"planner: policy not usable: {exc}{hint}") from None
+        raise ConfigError(f"planner: policy/map not usable: {type(exc).__name__}: {one_line(exc)}{hint}") from None
 
 
 def episode_return(lane_changes, outcome: str, facts: dict, reward_cfg) -> float:
@@ -82,13 +93,17 @@ class PlannerNode(Node):
         self.declare_parameter("planner_class", DEFAULT_CLASS)
         self.declare_parameter("cache_size", 64)
         self.declare_parameter("publish_markers", True)
+        self.declare_parameter("max_stamp_jump_s", 1.0)
         g = lambda n: self.get_parameter(n).value  # noqa: E731
+        self.cache_size = int(param_range(g("cache_size"), "cache_size", "planner", lo=1, hi=100_000))
+        jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", "planner",
+                                        lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
+        self.order = I.StampFilter(jump_ns)
+        self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
+        self._newest_state = None
         if planner is None:
             planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"))
         self.hp = planner
-        self.cache_size = int(g("cache_size"))
-        if self.cache_size <= 0:
-            raise ValueError(f"planner: cache_size must be > 0, got {self.cache_size}")
         self.markers_on = bool(g("publish_markers"))
         # the agent's own environment config: reward terms and decision period as in training
         cfg = getattr(self.hp, "cfg", None)
@@ -108,30 +123,45 @@ class PlannerNode(Node):
         self.pub_ref = self.create_publisher(I.Odometry, I.TOPIC_REFERENCE, I.STATE_QOS)
         self.pub_markers = self.create_publisher(I.MarkerArray, I.TOPIC_PLANNER_MARKERS, I.MARKER_QOS)
         self.pub_result = self.create_publisher(I.DiagnosticStatus, I.TOPIC_PLANNER_RESULT, I.RESULT_QOS)
-        self.create_subscription(I.PoseStamped, I.TOPIC_GOAL, self._on_goal, I.LATCHED_QOS)
-        self.create_subscription(I.DiagnosticStatus, I.TOPIC_RESULT, self._on_result, I.RESULT_QOS)
-        self.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM, self._on_odom, I.STATE_QOS)
-        self.create_subscription(I.MultiDOFJointTrajectory, I.TOPIC_OBJECTS, self._on_objects, I.STATE_QOS)
+        sub = lambda typ, topic, fn, qos: self.create_subscription(  # noqa: E731
+            typ, topic, guarded(self, topic, fn, self.dropped), qos)
+        sub(I.PoseStamped, I.TOPIC_GOAL, self._on_goal, I.LATCHED_QOS)
+        sub(I.DiagnosticStatus, I.TOPIC_RESULT, self._on_result, I.RESULT_QOS)
+        sub(I.Odometry, I.TOPIC_EGO_ODOM, self._on_odom, I.STATE_QOS)
+        sub(I.MultiDOFJointTrajectory, I.TOPIC_OBJECTS, self._on_objects, I.STATE_QOS)
 
     def _bounded(self, d: OrderedDict) -> None:
         while len(d) > self.cache_size:
             d.popitem(last=False)
 
+    def _check_ahead(self, stamp: int, what: str) -> None:
+        """A goal/result far ahead of every state seen would park the episode: refuse it."""
+        if self._newest_state is not None and stamp - self._newest_state > self.order.max_jump_ns:
+            raise I.MessageError(f"{what} stamp {stamp} ns is more than {self.order.max_jump_ns} ns "
+                                 f"ahead of the newest state ({self._newest_state} ns)")
+
+    def _restart(self) -> None:
+        """The source's time went back (world restarted): forget the old episode."""
+        self.gate = I.EpisodeGate()
+        self.states.clear(), self.objects.clear(), self.answers.clear()
+        self.order.reset()
+        self._newest_state = None
+        self.decisions_ep, self.ticks_ep = [], 0
+
     def _on_goal(self, msg) -> None:
-        try:
-            goal = I.pose_to_goal(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored goal: {exc}")
-            return
-        self.gate.on_goal(I.stamp_to_ns(msg.header.stamp), goal)
+        goal = I.pose_to_goal(msg)
+        stamp = I.stamp_to_ns(msg.header.stamp)
+        self._check_ahead(stamp, "goal")
+        if self.gate.goal_stamp is not None and stamp < self.gate.goal_stamp:
+            self.get_logger().warning(f"goal stamp went back ({stamp} < {self.gate.goal_stamp} ns): "
+                                      "source restarted? starting over")
+            self._restart()
+        self.gate.on_goal(stamp, goal)
         self._process()
 
     def _on_result(self, msg) -> None:
-        try:
-            res = I.status_to_result(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored episode result: {exc}")
-            return
+        res = I.status_to_result(msg)
+        self._check_ahead(res.stamp_ns, "result")
         was_active = self.gate.goal_stamp is not None and not self.gate.ended
         self.gate.on_result(res.stamp_ns)
         if not was_active:
@@ -149,21 +179,26 @@ class PlannerNode(Node):
         self.pub_result.publish(out)
 
     def _on_odom(self, msg) -> None:
-        try:
-            self.states[I.stamp_to_ns(msg.header.stamp)] = I.odometry_to_state(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored state: {exc}")
-            return
+        x = I.odometry_to_state(msg)
+        stamp = I.stamp_to_ns(msg.header.stamp)
+        self._check_order(stamp, "state")
+        self._newest_state = stamp if self._newest_state is None else max(self._newest_state, stamp)
+        self.states[stamp] = x
         self._bounded(self.states)
         self._process()
 
+    def _check_order(self, stamp: int, what: str) -> None:
+        if stamp in self.answers:
+            return  # a re-sent tick: answered from the cache
+        why = self.order.check(stamp)
+        if why is not None:
+            raise I.MessageError(f"{what} stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
+
     def _on_objects(self, msg) -> None:
-        try:
-            _, svs = I.objects_to_svs(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored objects: {exc}")
-            return
-        self.objects[I.stamp_to_ns(msg.header.stamp)] = svs
+        _, svs = I.objects_to_svs(msg)
+        stamp = I.stamp_to_ns(msg.header.stamp)
+        self._check_order(stamp, "objects")
+        self.objects[stamp] = svs
         self._bounded(self.objects)
         self._process()
 
@@ -180,15 +215,33 @@ class PlannerNode(Node):
             if kind == "stale":
                 continue
             if self.gate.new_episode():
-                self.hp.reset(ego, np.asarray(self.gate.goal, dtype=float))
+                self.order.reset()
+                try:
+                    self.hp.reset(ego, np.asarray(self.gate.goal, dtype=float))
+                except Exception as exc:  # noqa: BLE001 - e.g. no route to an implausible goal
+                    self.get_logger().error(f"planner reset failed at {stamp} ns: {type(exc).__name__}: "
+                                            f"{one_line(exc)}", throttle_duration_sec=1.0)
+                    self.gate._started = None  # retry the reset with the next state
+                    continue
                 self.decisions_ep, self.ticks_ep = [], 0
+            if self.order.check(stamp) is not None:
+                continue  # a newer stamp was answered meanwhile
             if self.ticks_ep % self.decision_every == 0:
                 # as IntersectionEnv.step: one decision, held for decision_every ticks
-                x_imr, info = self.hp.step(ego, svs)
-                self.x_imr = np.asarray(x_imr, dtype=float)
+                try:
+                    x_imr, info = self.hp.step(ego, svs)
+                    x_imr = np.asarray(x_imr, dtype=float)
+                    if x_imr.shape != (4,) or not np.all(np.isfinite(x_imr)):
+                        raise ValueError(f"policy returned x_IMR {x_imr.tolist()}")
+                except Exception as exc:  # noqa: BLE001 - leave the tick unanswered, keep running
+                    self.get_logger().error(f"planner step failed at {stamp} ns: {type(exc).__name__}: "
+                                            f"{one_line(exc)}", throttle_duration_sec=1.0)
+                    continue
+                self.x_imr = x_imr
                 self.decisions += 1
                 self.decisions_ep.append((stamp, bool((info or {}).get("lane_change", False))))
             self.ticks_ep += 1
+            self.order.answered(stamp)
             x_imr = self.x_imr
             ref = I.reference_to_odometry(x_imr, stamp)
             self.answers[stamp] = ref

@@ -111,6 +111,9 @@ def ns_to_stamp(ns: int) -> TimeMsg:
 
 
 def stamp_to_ns(stamp: TimeMsg) -> int:
+    """Stamp -> ns; a negative time or nanosec >= 1 s is not a stamp any source here sends."""
+    if stamp.sec < 0 or stamp.nanosec >= NS_PER_S:
+        raise MessageError(f"invalid stamp sec={stamp.sec} nanosec={stamp.nanosec}")
     return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
@@ -167,6 +170,23 @@ def _check_finite(values: Iterable[float], what: str) -> None:
         raise MessageError(f"{what}: non-finite value in {vals}")
 
 
+# Plausibility bounds of incoming states (docs/faults.md). Finite is not enough: 1e30 m
+# passes isfinite but overflows the MPC's cost (x**2) to inf and the policy's
+# normalised observation to garbage. The bounds are far outside anything real (maps
+# span ~100 m, v_max is 10 m/s) so they only ever reject broken senders; inputs
+# (commands) are not bounded here because the world clips them to the vehicle's limits.
+MAX_ABS_COORD_M = 1.0e4
+MAX_ABS_SPEED_MPS = 100.0
+
+
+def _check_plausible(x: float, y: float, v: float, what: str) -> None:
+    _check_finite((x, y, v), what)
+    if abs(x) > MAX_ABS_COORD_M or abs(y) > MAX_ABS_COORD_M:
+        raise MessageError(f"{what}: position ({x:.6g}, {y:.6g}) beyond +-{MAX_ABS_COORD_M:g} m")
+    if abs(v) > MAX_ABS_SPEED_MPS:
+        raise MessageError(f"{what}: speed {v:.6g} beyond +-{MAX_ABS_SPEED_MPS:g} m/s")
+
+
 # ----------------------------------------------------------------------------- state
 def state_to_odometry(state, stamp_ns: int, frame_id: str = FRAME_MAP,
                       child_frame_id: str = FRAME_BASE) -> Odometry:
@@ -187,7 +207,8 @@ def odometry_to_state(msg: Odometry, frame_id: str = FRAME_MAP, what: str = "odo
     _check_frame(msg.header, frame_id, what)
     p = msg.pose.pose.position
     v = msg.twist.twist.linear.x
-    _check_finite((p.x, p.y, v), f"{what} position/speed")
+    _check_plausible(p.x, p.y, v, f"{what} position/speed")
+    stamp_to_ns(msg.header.stamp)
     psi = quaternion_to_yaw(msg.pose.pose.orientation, f"{what} orientation")
     return np.array([p.x, p.y, v, psi], dtype=float)
 
@@ -235,6 +256,7 @@ def svs_to_objects(ids: Sequence[str], states, stamp_ns: int,
 def objects_to_svs(msg: MultiDOFJointTrajectory, frame_id: str = FRAME_MAP):
     """MultiDOFJointTrajectory -> (ids, (n, 4) states). Later points (predictions) are ignored."""
     _check_frame(msg.header, frame_id, "objects")
+    stamp_to_ns(msg.header.stamp)
     if len(msg.points) == 0:
         raise MessageError("objects: no trajectory point (points[0] holds the current SV states)")
     pt = msg.points[0]
@@ -247,7 +269,7 @@ def objects_to_svs(msg: MultiDOFJointTrajectory, frame_id: str = FRAME_MAP):
         raise MessageError(f"objects: SV ids not unique: {ids}")
     out = np.zeros((n, 4))
     for i, (tf, tw) in enumerate(zip(pt.transforms, pt.velocities)):
-        _check_finite((tf.translation.x, tf.translation.y, tw.linear.x), f"objects[{ids[i]}]")
+        _check_plausible(tf.translation.x, tf.translation.y, tw.linear.x, f"objects[{ids[i]}]")
         out[i] = (tf.translation.x, tf.translation.y, tw.linear.x,
                   quaternion_to_yaw(tf.rotation, f"objects[{ids[i]}] rotation"))
     return ids, out
@@ -320,7 +342,8 @@ def goal_to_pose(goal, stamp_ns: int) -> PoseStamped:
 def pose_to_goal(msg: PoseStamped) -> np.ndarray:
     _check_frame(msg.header, FRAME_MAP, "goal")
     p = msg.pose.position
-    _check_finite((p.x, p.y), "goal position")
+    _check_plausible(p.x, p.y, 0.0, "goal position")
+    stamp_to_ns(msg.header.stamp)
     return np.array([p.x, p.y, quaternion_to_yaw(msg.pose.orientation, "goal orientation")])
 
 
@@ -372,6 +395,8 @@ def status_to_result(msg: DiagnosticStatus) -> EpisodeResult:
         raise MessageError(f"episode result: bad number ({exc})") from None
     if ret is not None and not math.isfinite(ret):
         raise MessageError(f"episode result: return is not finite ({kv['return']})")
+    if stamp < 0 or steps < 0 or n_sv < 0:
+        raise MessageError(f"episode result: negative stamp_ns/steps/n_sv ({stamp}, {steps}, {n_sv})")
     return EpisodeResult(kv["outcome"], ret, n_sv, kv["task"], seed, steps, stamp)
 
 
@@ -425,6 +450,53 @@ class EpisodeGate:
     @property
     def ended(self) -> bool:
         return self.goal_stamp is not None and self.result_stamp >= self.goal_stamp
+
+
+class StampFilter:
+    """Order check of the stamps a node answers within one episode (docs/faults.md).
+
+    Sources publish strictly growing stamps (a lockstep re-send repeats one, and is
+    answered from the node's cache before this check). So, once a stamp was answered:
+
+    * an older stamp is a late or replayed sample: ``"stale"``, dropped;
+    * a stamp more than ``max_jump_ns`` ahead is a wrong clock or a bogus sender:
+      ``"jump"``, dropped, because answering it would make every genuine tick after it
+      look stale. ``resync_after`` such stamps in a row, each newer than the last, are
+      taken as a real jump of the source (it was paused, a peer was gone a while): the
+      filter follows it.
+
+    ``check`` returns None (answer it) or the reason; ``answered`` records a stamp.
+    """
+
+    def __init__(self, max_jump_ns: int, resync_after: int = 5) -> None:
+        if max_jump_ns <= 0 or resync_after < 1:
+            raise ValueError("StampFilter: max_jump_ns must be > 0 and resync_after >= 1")
+        self.max_jump_ns = int(max_jump_ns)
+        self.resync_after = int(resync_after)
+        self.reset()
+
+    def reset(self) -> None:
+        self.newest: Optional[int] = None
+        self._jumps: list = []
+
+    def check(self, stamp_ns: int) -> Optional[str]:
+        if self.newest is None:
+            return None
+        if stamp_ns < self.newest:
+            return "stale"
+        if stamp_ns - self.newest > self.max_jump_ns:
+            if self._jumps and stamp_ns <= self._jumps[-1]:
+                return "jump"
+            self._jumps.append(stamp_ns)
+            if len(self._jumps) >= self.resync_after:
+                self._jumps = []
+                return None
+            return "jump"
+        return None
+
+    def answered(self, stamp_ns: int) -> None:
+        self.newest = stamp_ns if self.newest is None else max(self.newest, stamp_ns)
+        self._jumps = []
 
 
 # ----------------------------------------------------------------------------- markers

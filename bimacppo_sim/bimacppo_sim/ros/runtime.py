@@ -9,6 +9,7 @@ stderr with exit code 2, never as a traceback.
 """
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -48,11 +49,101 @@ class StopFlag:
         return self.event.is_set()
 
 
+DEFAULT_DISCOVERY_RANGE = "LOCALHOST"
+
+
+class ConfigError(ValueError):
+    """A start-up problem the user must fix (bad parameter, unreadable file)."""
+
+
+WARN_THROTTLE_S = 1.0
+"""Per call site: a flood of bad messages gives one warning a second, not one per message."""
+ERROR_LINE_MAX = 400
+"""Characters of an error line: some library messages (torch) run to paragraphs."""
+
+
+def one_line(exc) -> str:
+    """The first line of an exception's text, capped: exit-code-2 errors are one line."""
+    text = str(exc).strip().splitlines()
+    line = text[0] if text else type(exc).__name__
+    return line if len(line) <= ERROR_LINE_MAX else line[:ERROR_LINE_MAX] + " ..."
+
+
 def init(argv: Optional[Sequence[str]] = None):
-    """rclpy.init without its signal handlers; returns (non-ROS args, stop flag)."""
+    """rclpy.init without its signal handlers; returns (non-ROS args, stop flag).
+
+    A broken ``--params-file`` (YAML rcl cannot parse) surfaces here as an RCLError;
+    it becomes a :class:`ConfigError` naming the problem.
+    """
+    from rclpy._rclpy_pybind11 import RCLError
+    # discovery stays on this machine unless the user asks for more (SUBNET for a
+    # multi-machine deployment): a default must not expose the graph to the network
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", DEFAULT_DISCOVERY_RANGE)
     args = list(sys.argv if argv is None else argv)
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except RCLError as exc:
+        raise ConfigError(f"bad ROS arguments or parameter file: {one_line(exc)}") from None
     return remove_ros_args(args)[1:], StopFlag().install()
+
+
+# ----------------------------------------------------------------------------- validation
+def param_file(value: str, name: str, node: str) -> str:
+    """A parameter that names a file: it must exist and be a regular file."""
+    path = str(value)
+    if not os.path.exists(path):
+        raise ConfigError(f"{node}: parameter {name}: no such file: {path!r}")
+    if not os.path.isfile(path):
+        raise ConfigError(f"{node}: parameter {name}: not a regular file: {path!r}")
+    return path
+
+
+def param_range(value, name: str, node: str, lo: float = None, hi: float = None,
+                lo_open: bool = False):
+    """A numeric parameter within [lo, hi] (``lo_open``: strictly above lo); finite."""
+    import math
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{node}: parameter {name} must be a number, got {value!r}") from None
+    bad = not math.isfinite(v)
+    if lo is not None:
+        bad = bad or (v <= lo if lo_open else v < lo)
+    if hi is not None:
+        bad = bad or v > hi
+    if bad:
+        lo_s = "-inf" if lo is None else f"{lo}"
+        hi_s = "inf" if hi is None else f"{hi}"
+        raise ConfigError(f"{node}: parameter {name} must be in {'(' if lo_open else '['}{lo_s}, {hi_s}], "
+                          f"got {value!r}")
+    return value
+
+
+def guarded(node, what: str, fn: Callable, errors: Optional[dict] = None) -> Callable:
+    """Wrap a subscription callback so that no message can take the node down.
+
+    A message the converters reject (``MessageError``, incl. stale/out-of-order stamps)
+    is dropped with a throttled warning; any other exception raised while handling one
+    message (a core function refusing an input it cannot use) is dropped with a
+    throttled error naming the exception. ``errors`` (topic -> count) is incremented per
+    dropped message, for tests and diagnostics.
+    """
+    from .interfaces import MessageError
+    log = node.get_logger()
+
+    def cb(msg):
+        try:
+            fn(msg)
+        except MessageError as exc:
+            if errors is not None:
+                errors[what] = errors.get(what, 0) + 1
+            log.warning(f"ignored {what}: {exc}", throttle_duration_sec=WARN_THROTTLE_S)
+        except Exception as exc:  # noqa: BLE001 - one bad message must not kill the node
+            if errors is not None:
+                errors[what] = errors.get(what, 0) + 1
+            log.error(f"dropped {what}: {type(exc).__name__}: {one_line(exc)}",
+                      throttle_duration_sec=WARN_THROTTLE_S)
+    return cb
 
 
 def spin(executor: Executor, stop: StopFlag, done: Optional[Callable[[], bool]] = None,
@@ -95,13 +186,17 @@ def close_nodes(nodes: List) -> None:
 def run_single(make_node: Callable[[List[str]], object], argv=None,
                done_attr: str = "done") -> int:
     """``main`` body for one node per process (what ``ros2 run`` starts)."""
-    args, stop = init(argv)
+    try:
+        args, stop = init(argv)
+    except ConfigError as exc:
+        print(f"error: {one_line(exc)}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
     node = None
     try:
         try:
             node = make_node(args)
         except (ValueError, FileNotFoundError, LookupError, *ParameterException) as exc:
-            print(f"error: {exc}", file=sys.stderr)
+            print(f"error: {one_line(exc)}", file=sys.stderr)
             return EXIT_CONFIG_ERROR
         ex = SingleThreadedExecutor()
         ex.add_node(node)

@@ -13,6 +13,11 @@ Two clocking modes (parameter ``mode``):
 
 Sim time starts at one tick and only grows, also across resets (a reset advances it by
 one tick), so every published state has a unique stamp and /clock never jumps back.
+
+Faults (docs/faults.md): the command callback is ``runtime.guarded`` (a malformed command is
+dropped with a throttled warning); commands are clipped to the vehicle's limits by
+``World.step``; start-up parameters are checked (ranges, a ``map_id`` path must be a
+readable, valid map file) and a problem is one ``error:`` line with exit code 2.
 """
 from __future__ import annotations
 
@@ -29,7 +34,7 @@ from std_srvs.srv import Trigger
 from bimacppo_sim import TASKS, Scenario, World, load_map
 
 from . import interfaces as I
-from .runtime import run_single
+from .runtime import ConfigError, guarded, one_line, param_range, run_single
 
 MODES = ("lockstep", "realtime")
 
@@ -54,13 +59,20 @@ class WorldNode(Node):
         self.mode = p("mode")
         if self.mode not in MODES:
             raise ValueError(f"world: parameter mode must be one of {MODES}, got {self.mode!r}")
-        self.rate_factor = float(p("rate_factor"))
-        if not self.rate_factor > 0:
-            raise ValueError(f"world: rate_factor must be > 0, got {self.rate_factor}")
-        self.command_timeout_ns = int(float(p("command_timeout_s")) * I.NS_PER_S)
-        self.resend_period = float(p("resend_period_s"))
+        self.rate_factor = float(param_range(p("rate_factor"), "rate_factor", "world", lo=0.0, hi=1000.0,
+                                             lo_open=True))
+        self.command_timeout_ns = int(float(param_range(p("command_timeout_s"), "command_timeout_s", "world",
+                                                        lo=0.0, hi=60.0, lo_open=True)) * I.NS_PER_S)
+        self.resend_period = float(param_range(p("resend_period_s"), "resend_period_s", "world",
+                                               lo=0.0, hi=60.0, lo_open=True))
         self.markers_on = bool(p("publish_markers"))
-        self.world = World(load_map(p("map_id")))
+        try:
+            road = load_map(p("map_id"))
+        except Exception as exc:  # noqa: BLE001 - YAML syntax, missing keys, wrong types: all user errors
+            raise ConfigError(f"world: parameter map_id {p('map_id')!r}: {type(exc).__name__}: "
+                              f"{one_line(exc)}") from None
+        self.dropped: dict = {}
+        self.world = World(road)
         self.dt_ns = int(round(self.world.dt * I.NS_PER_S))
         veh = self.world.cfg.vehicle
         self.brake = float(veh.a_min)
@@ -74,7 +86,8 @@ class WorldNode(Node):
         self.pub_markers = self.create_publisher(I.MarkerArray, I.TOPIC_MARKERS, I.MARKER_QOS)
         self.pub_goal = self.create_publisher(I.PoseStamped, I.TOPIC_GOAL, I.LATCHED_QOS)
         self.pub_result = self.create_publisher(I.DiagnosticStatus, I.TOPIC_RESULT, I.RESULT_QOS)
-        self.create_subscription(I.JointTrajectory, I.TOPIC_COMMAND, self._on_command, I.STATE_QOS)
+        self.create_subscription(I.JointTrajectory, I.TOPIC_COMMAND,
+                                 guarded(self, I.TOPIC_COMMAND, self._on_command, self.dropped), I.STATE_QOS)
         self.create_service(Trigger, "~/reset", self._on_reset)
 
         self.tick = 0                  # global tick counter: stamp = tick * dt
@@ -183,11 +196,7 @@ class WorldNode(Node):
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg) -> None:
-        try:
-            u, _ = I.trajectory_to_command(msg)
-        except I.MessageError as exc:
-            self.get_logger().warning(f"ignored command: {exc}")
-            return
+        u, _ = I.trajectory_to_command(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
         if self.mode == "realtime":
             self._last_cmd = (stamp, u)
