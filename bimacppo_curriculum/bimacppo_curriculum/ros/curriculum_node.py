@@ -51,6 +51,7 @@ class CurriculumNode(Node):
         d("result_topic", I.TOPIC_PLANNER_RESULT)
         d("world_node", I.WORLD_NODE)
         d("retry_period_s", 0.5)
+        d("stall_timeout_s", 5.0)
         g = lambda n: self.get_parameter(n).value  # noqa: E731
         self.episodes = int(g("episodes"))
         if self.episodes < 0:
@@ -72,15 +73,35 @@ class CurriculumNode(Node):
         self.current = None        # (i, j, seed) of the running episode
         self._busy = False         # a set/reset round trip is in flight
         self._warned = False
+        self.stall_timeout = float(param_range(g("stall_timeout_s"), "stall_timeout_s", "curriculum",
+                                               lo=0.0, hi=3600.0, lo_open=True))
+        self._last_progress = time.monotonic()
+        # /clock = the world is alive (it publishes it every tick and every re-send)
+        self.create_subscription(I.ClockMsg, I.TOPIC_CLOCK, self._on_clock, I.CLOCK_QOS)
         retry = float(param_range(g("retry_period_s"), "retry_period_s", "curriculum", lo=0.0, hi=60.0,
                                   lo_open=True))
         self.create_timer(retry, self._kick,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ------------------------------------------------------------------ cycle
+    def _on_clock(self, _msg) -> None:
+        self._last_progress = time.monotonic()
+
     def _kick(self) -> None:
-        """Start the first episode once the world's services exist (and retry failures)."""
-        if self.current is None and not self._busy and not self.done:
+        """Start the first episode once the world's services exist (and retry failures).
+
+        Stall recovery: a world that was killed and restarted has forgotten the episode
+        (and a request sent while it was gone never gets an answer). When the world has
+        been silent (no /clock) for ``stall_timeout_s`` while an episode or a request is
+        outstanding, the request is dropped and the next episode requested again.
+        """
+        if self.done:
+            return
+        if (self.current is not None or self._busy) and \
+                time.monotonic() - self._last_progress > self.stall_timeout:
+            self.get_logger().warning(f"world silent for {self.stall_timeout:g} s: requesting the episode again")
+            self.current, self._busy = None, False
+        if self.current is None and not self._busy:
             self.start_next()
 
     def start_next(self) -> bool:
@@ -88,6 +109,7 @@ class CurriculumNode(Node):
             return False
         if not (self.cli_params.service_is_ready() and self.cli_reset.service_is_ready()):
             return False
+        self._last_progress = time.monotonic()
         i, j = self.sched.sample()
         seed = self.seed_base + self.finished
         self._busy = True

@@ -127,11 +127,17 @@ class ControllerNode(Node):
     def _on_result(self, msg) -> None:
         res = I.status_to_result(msg)
         self._check_ahead(res.stamp_ns, "result")
+        if self.gate.goal_stamp is not None and res.stamp_ns < self.gate.goal_stamp:
+            raise I.MessageError(f"result stamp {res.stamp_ns} ns is older than the episode's goal "
+                                 f"({self.gate.goal_stamp} ns)")
         self.gate.on_result(res.stamp_ns)
 
     def _on_odom(self, msg) -> None:
         x = I.odometry_to_state(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
+        why = None if stamp in self.answers else self.order.check(stamp)
+        if why is not None:
+            raise I.MessageError(f"state stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
         self._newest_state = stamp if self._newest_state is None else max(self._newest_state, stamp)
         self.states[stamp] = x
         self._bounded(self.states)

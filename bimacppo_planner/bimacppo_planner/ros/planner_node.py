@@ -162,6 +162,9 @@ class PlannerNode(Node):
     def _on_result(self, msg) -> None:
         res = I.status_to_result(msg)
         self._check_ahead(res.stamp_ns, "result")
+        if self.gate.goal_stamp is not None and res.stamp_ns < self.gate.goal_stamp:
+            raise I.MessageError(f"result stamp {res.stamp_ns} ns is older than the episode's goal "
+                                 f"({self.gate.goal_stamp} ns)")
         was_active = self.gate.goal_stamp is not None and not self.gate.ended
         self.gate.on_result(res.stamp_ns)
         if not was_active:

@@ -22,6 +22,7 @@ from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped, Quaternion, Transform, Twist
 from nav_msgs.msg import Odometry
+from rosgraph_msgs.msg import Clock as ClockMsg  # noqa: F401 - re-exported for the nodes
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from trajectory_msgs.msg import (
     JointTrajectory,
@@ -489,7 +490,7 @@ class StampFilter:
                 return "jump"
             self._jumps.append(stamp_ns)
             if len(self._jumps) >= self.resync_after:
-                self._jumps = []
+                self.reset()  # follow the source: the next answer sets the new reference point
                 return None
             return "jump"
         return None

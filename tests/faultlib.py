@@ -1,0 +1,158 @@
+"""Helpers of the fault-injection suite (tests/test_faults.py): processes, a watcher, a ledger.
+
+The watcher subscribes *raw* to every output topic of every node and decodes each message
+itself, so a message the test injected (same topic, e.g. a NaN on /ego/odom) is recognised
+by its value and not blamed on a node.
+"""
+from __future__ import annotations
+
+import array
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import defaultdict
+
+import rclpy
+from rclpy.serialization import deserialize_message, serialize_message
+
+from bimacppo_sim.ros import interfaces as I
+from rosgraph_msgs.msg import Clock as ClockMsg
+
+ENV = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get("AMENT_PREFIX_PATH", sys.prefix),
+           PYTHONUNBUFFERED="1")
+
+OUTPUTS = {   # every output topic of every node
+    I.TOPIC_CLOCK: ClockMsg, I.TOPIC_EGO_ODOM: I.Odometry, I.TOPIC_OBJECTS: I.MultiDOFJointTrajectory,
+    I.TOPIC_MARKERS: I.MarkerArray, I.TOPIC_GOAL: I.PoseStamped, I.TOPIC_RESULT: I.DiagnosticStatus,
+    I.TOPIC_REFERENCE: I.Odometry, I.TOPIC_PLANNER_MARKERS: I.MarkerArray,
+    I.TOPIC_COMMAND: I.JointTrajectory, I.TOPIC_PLANNER_RESULT: I.DiagnosticStatus,
+}
+QOS = {I.TOPIC_CLOCK: I.CLOCK_QOS, I.TOPIC_GOAL: I.LATCHED_QOS, I.TOPIC_RESULT: I.RESULT_QOS,
+       I.TOPIC_PLANNER_RESULT: I.RESULT_QOS, I.TOPIC_MARKERS: I.MARKER_QOS,
+       I.TOPIC_PLANNER_MARKERS: I.MARKER_QOS}
+
+
+def non_finite(msg, path: str = "") -> list:
+    """Paths of every non-finite float in a ROS message, walking its fields generically
+    (``get_fields_and_field_types``), nested messages and arrays included; string values
+    of DiagnosticStatus key-values that parse as floats are checked too (the return)."""
+    out = []
+    if isinstance(msg, float):
+        return [] if math.isfinite(msg) else [path]
+    if isinstance(msg, str):
+        if path.endswith(".value"):
+            try:
+                v = float(msg)
+            except ValueError:
+                return []
+            return [] if math.isfinite(v) else [path]
+        return []
+    if isinstance(msg, (list, tuple, array.array)) or type(msg).__name__ == "ndarray":
+        for i, v in enumerate(msg):
+            out += non_finite(v if not hasattr(v, "item") or hasattr(v, "get_fields_and_field_types")
+                              else v.item(), f"{path}[{i}]")
+        return out
+    if hasattr(msg, "get_fields_and_field_types"):
+        for name in msg.get_fields_and_field_types():
+            out += non_finite(getattr(msg, name), f"{path}.{name}")
+    return out
+
+
+class Watcher:
+    """Raw subscriber to every output topic; records progress and any non-finite value."""
+
+    def __init__(self, node):
+        self.node = node
+        self.injected = set()          # repr of every message the test published itself
+        self.injected_topics = set()
+        self.bad = []                  # (topic, paths) of non-finite values from nodes
+        self.counts = defaultdict(int)
+        self.commands = []             # (wall monotonic, stamp, a, delta, n_points)
+        self.answered = set()          # command stamps that equal a state stamp seen
+        self.states = set()
+        self.last = {}                 # topic -> last message from a node
+        for topic, typ in OUTPUTS.items():
+            node.create_subscription(typ, topic, lambda raw, t=topic, ty=typ: self._on(t, ty, raw),
+                                     QOS.get(topic, I.STATE_QOS), raw=True)
+
+    def _on(self, topic, typ, raw) -> None:
+        msg = deserialize_message(raw, typ)
+        bad = non_finite(msg)
+        if topic in self.injected_topics and repr(msg) in self.injected:
+            return  # our own injection (compared by value: CDR padding bytes may differ)
+        self.counts[topic] += 1
+        self.last[topic] = msg
+        if bad:
+            self.bad.append((topic, bad[:5]))
+        if topic == I.TOPIC_EGO_ODOM:
+            self.states.add(I.stamp_to_ns(msg.header.stamp))
+        elif topic == I.TOPIC_COMMAND and msg.points:
+            st = msg.header.stamp.sec * I.NS_PER_S + msg.header.stamp.nanosec
+            p0 = msg.points[0]
+            self.commands.append((time.monotonic(), st, p0.accelerations[1], p0.positions[0], len(msg.points)))
+            if st in self.states:
+                self.answered.add(st)
+
+    def publish(self, pub, msg) -> None:
+        self.injected.add(repr(deserialize_message(serialize_message(msg), type(msg))))
+        self.injected_topics.add(pub.topic_name)
+        pub.publish(msg)
+
+    def spin(self, seconds: float, until=None) -> bool:
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            if until is not None and until():
+                return True
+            rclpy.spin_once(self.node, timeout_sec=0.02)
+        return bool(until and until())
+
+    def progress(self, ticks: int = 3, timeout: float = 20.0) -> bool:
+        """The loop answers ``ticks`` more world states (new command stamps) within timeout."""
+        n0 = len(self.answered)
+        return self.spin(timeout, lambda: len(self.answered) >= n0 + ticks)
+
+
+def start(*args, log=None):
+    return subprocess.Popen([sys.executable, *args], env=ENV, stdout=log or subprocess.DEVNULL,
+                            stderr=subprocess.STDOUT, text=True)
+
+
+def stop(procs, sig=signal.SIGINT, timeout=15.0) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(sig)
+    for p in procs:
+        try:
+            p.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+class Ledger:
+    """Every case tried and whether it held; printed and written as JSON at the end."""
+
+    def __init__(self):
+        self.cases = []     # (group, name, held, detail)
+
+    def record(self, group: str, name: str, held: bool, detail: str = "") -> bool:
+        self.cases.append((group, name, bool(held), detail))
+        return bool(held)
+
+    def failed(self, group: str) -> list:
+        return [(n, d) for g, n, h, d in self.cases if g == group and not h]
+
+    def summary(self) -> str:
+        held = sum(1 for c in self.cases if c[2])
+        return f"fault-injection: {len(self.cases)} cases tried, {held} held"
+
+    def write(self, path) -> None:
+        with open(path, "w") as f:
+            json.dump({"summary": self.summary(), "tried": len(self.cases),
+                       "held": sum(1 for c in self.cases if c[2]),
+                       "cases": [dict(group=g, name=n, held=h, detail=d) for g, n, h, d in self.cases]},
+                      f, indent=1)
