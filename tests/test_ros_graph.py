@@ -37,6 +37,22 @@ def policy_file(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def policy_file_extended(tmp_path_factory):
+    """A policy whose metadata carries the shipped configuration (ego-frame observation,
+    one decision every 3 ticks): the planner node must observe and hold decisions as training did."""
+    from importlib import resources
+
+    from bimacppo_planner.checkpoint import export_policy
+    from bimacppo_planner.decision import EnvConfig
+    from bimacppo_planner.ppo import PPO
+    cfg = EnvConfig.load(resources.files("bimacppo_planner").joinpath("config/env_extended.yaml"))
+    assert cfg.action.decision_every == 3 and cfg.observation.sv_frame == "ego"
+    path = tmp_path_factory.mktemp("policy_ext") / "policy.pt"
+    export_policy(PPO(cfg.obs_dim, cfg.nvec, seed=POLICY_SEED), path, meta={"env_config": cfg.to_dict()})
+    return path
+
+
 def _as_received(ego, ids, svs, goal):
     """What a node decodes from the standard messages: the yaw quaternion round-trip rounds
     psi by ~1e-16, and the MPC core is sensitive to that (measured with a fixed-action
@@ -49,33 +65,37 @@ def _as_received(ego, ids, svs, goal):
 
 
 def in_process_episode(scenario, policy_path, map_id="dual_lane_4way"):
-    """The same loop without ROS, as ``IntersectionEnv.reset/step`` (decision_every = 1) with
-    the deployed ``HighLevelPlanner`` choosing the actions; the return is summed with the
-    environment's ``step_reward``. Returns (outcome, trajectory, return, lane changes)."""
+    """The same loop without ROS, as ``IntersectionEnv.reset/step`` with the deployed
+    ``HighLevelPlanner`` choosing the actions (one decision every ``decision_every`` ticks,
+    held in between); the return is summed with the environment's ``step_reward``, one term per
+    decision plus the terminal term. Returns (outcome, trajectory, return, lane changes)."""
     from bimacppo_mpc import MPCConfig, make_controller
     from bimacppo_planner.agent import HighLevelPlanner
     from bimacppo_planner.decision import step_reward
     world = World(load_map(map_id))
     world.reset(scenario)
     hp = HighLevelPlanner.load(policy_path, map_id)
-    assert hp.cfg.action.decision_every == 1  # the loop below takes one decision per tick
+    every = hp.cfg.action.decision_every
     ego, _, goal = _as_received(world.ego, world.sv_ids, world.sv_states(), world.goal)
     hp.reset(ego, goal)
     ctrl = make_controller(MPCConfig.load(), solver="fast")
     ctrl.reset()
     u_prev = np.zeros(2)
-    traj, ret, changes = [world.ego], 0.0, 0
+    traj, ret, changes, tick = [world.ego], 0.0, 0, 0
     while True:
         ego, svs, _ = _as_received(world.ego, world.sv_ids, world.sv_states(), world.goal)
-        x_imr, info = hp.step(ego, svs)
+        if tick % every == 0:
+            x_imr, info = hp.step(ego, svs)
+            changes += int(info["lane_change"])
+            ret += step_reward(hp.cfg.reward, info["lane_change"])
         sol = ctrl.solve(ego, x_imr, u_prev)
         res = world.step(sol.u)
         u_prev = np.asarray(sol.u, float)
         traj.append(world.ego)
-        changes += int(info["lane_change"])
-        ret += step_reward(hp.cfg.reward, info["lane_change"], res.outcome if res.done else None,
-                           scenario.n_sv, int(world.n_pcp), float(world.ego[2]), float(world.dist_to_goal()))
+        tick += 1
         if res.done:
+            ret += step_reward(hp.cfg.reward, False, res.outcome, scenario.n_sv, int(world.n_pcp),
+                               float(world.ego[2]), float(world.dist_to_goal())) - hp.cfg.reward.step
             return res.outcome, np.array(traj), ret, changes
 
 
@@ -120,9 +140,12 @@ def _planner(policy_file, *extra):
                   "-p", f"policy_path:={policy_file}", *extra)
 
 
-def test_lockstep_processes_match_in_process_run(node, policy_file):
+@pytest.mark.parametrize("which", ["paper", "extended"])
+def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_extended, which):
+    policy_file = policy_file if which == "paper" else policy_file_extended
     ref_outcome, ref_traj, ref_return, ref_changes = in_process_episode(SCENARIO, policy_file)
-    assert ref_changes > 0, "POLICY_SEED should give a policy that changes lanes on SCENARIO"
+    if which == "paper":
+        assert ref_changes > 0, "POLICY_SEED should give a policy that changes lanes on SCENARIO"
     odoms, results, returns = {}, [], []
     subs = [
         node.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM,
