@@ -310,8 +310,9 @@ def test_recorder_keeps_everything_on_clean_stop(graph):
     every command the loop answered while it was recording."""
     w = graph["watcher"]
     assert graph["up"]
-    w.progress(ticks=10, timeout=30)
-    t_from = time.monotonic() - 3.0   # the recorder has been up (and subscribed) well before this
+    w.spin(60, lambda: graph["mcaps"][-1].exists())   # a restarted recorder is up and writing
+    w.spin(2.0)                                        # ... and has discovered the topics (0.5 s period)
+    t_from = time.monotonic()
     w.progress(ticks=10, timeout=30)
     seen = {st for t, st, *_ in w.commands if t >= t_from and st in w.answered}
     rec = graph["procs"]["recorder"]
@@ -482,7 +483,8 @@ def test_startup_with_corrupt_inputs_exits_2_with_one_line(tmp_path, policy_file
         elif name == "player corrupted MCAP":  # nothing playable: one error line, exit 1 (test_ros_mcap)
             held = p.returncode == 1 and "Traceback" not in err
         else:
-            lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+            # rcl itself logs "[ERROR] [rcl]: Failed to parse global arguments" before ours
+            lines = [ln for ln in err.strip().splitlines() if ln.strip() and "[rcl]" not in ln]
             held = p.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") \
                 and "Traceback" not in err
         LEDGER.record("startup", name, held, f"rc={p.returncode} stderr={err.strip()[-300:]!r}")

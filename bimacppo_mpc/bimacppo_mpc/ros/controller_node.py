@@ -22,7 +22,7 @@ non-finite input is answered with the safe stop instead.
 """
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
 
 import numpy as np
 from rclpy.node import Node
@@ -61,6 +61,7 @@ class ControllerNode(Node):
         self.order = I.StampFilter(jump_ns)
         self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
         self._newest_state = None        # newest state stamp received (bounds goal/result stamps)
+        self._goals: deque = deque(maxlen=8)   # recent (stamp, goal): fallback for a bogus newer one
         self._warm_up()
         self.gate = I.EpisodeGate()
         self.u_prev = np.zeros(2)
@@ -106,12 +107,27 @@ class ControllerNode(Node):
             raise I.MessageError(f"{what} stamp {stamp} ns is more than {self.order.max_jump_ns} ns "
                                  f"ahead of the newest state ({self._newest_state} ns)")
 
+    def _rebase_goal(self, stamp: int) -> None:
+        """A goal stamped far ahead of the states (a bogus latched goal reaching a fresh
+        node before any state could expose it) is replaced by the newest goal received
+        that fits the states' time, or dropped (then the node waits for a goal)."""
+        g = self.gate
+        if g.goal_stamp is None or g.goal_stamp - stamp <= self.order.max_jump_ns:
+            return
+        fits = [(s, goal) for s, goal in self._goals if s - stamp <= self.order.max_jump_ns]
+        self.get_logger().warning(f"goal stamp {g.goal_stamp} ns is far ahead of the states ({stamp} ns): "
+                                  f"{'falling back to the goal of ' + str(fits[-1][0]) if fits else 'dropped'}",
+                                  throttle_duration_sec=1.0)
+        g.goal_stamp, g.goal = fits[-1] if fits else (None, None)
+        g._started = None
+
     def _restart(self) -> None:
         """The source's time went back (world restarted): forget the old episode."""
         self.gate = I.EpisodeGate()
         self.states.clear(), self.pending.clear(), self.answers.clear()
         self.order.reset()
         self._newest_state = None
+        self._goals.clear()
 
     def _on_goal(self, msg) -> None:
         goal = I.pose_to_goal(msg)
@@ -122,6 +138,7 @@ class ControllerNode(Node):
                                       "source restarted? starting over")
             self._restart()
         self.gate.on_goal(stamp, goal)
+        self._goals.append((stamp, goal))
         self._process()
 
     def _on_result(self, msg) -> None:
@@ -138,6 +155,7 @@ class ControllerNode(Node):
         why = None if stamp in self.answers else self.order.check(stamp)
         if why is not None:
             raise I.MessageError(f"state stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
+        self._rebase_goal(stamp)
         self._newest_state = stamp if self._newest_state is None else max(self._newest_state, stamp)
         self.states[stamp] = x
         self._bounded(self.states)

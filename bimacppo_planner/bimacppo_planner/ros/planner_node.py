@@ -23,7 +23,7 @@ controller's watchdog then stops the vehicle).
 from __future__ import annotations
 
 import importlib
-from collections import OrderedDict
+from collections import OrderedDict, deque
 
 import numpy as np
 from rclpy.node import Node
@@ -101,6 +101,7 @@ class PlannerNode(Node):
         self.order = I.StampFilter(jump_ns)
         self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
         self._newest_state = None
+        self._goals: deque = deque(maxlen=8)   # recent (stamp, goal): fallback for a bogus newer one
         if planner is None:
             planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"))
         self.hp = planner
@@ -140,6 +141,20 @@ class PlannerNode(Node):
             raise I.MessageError(f"{what} stamp {stamp} ns is more than {self.order.max_jump_ns} ns "
                                  f"ahead of the newest state ({self._newest_state} ns)")
 
+    def _rebase_goal(self, stamp: int) -> None:
+        """A goal stamped far ahead of the states (a bogus latched goal reaching a fresh
+        node before any state could expose it) is replaced by the newest goal received
+        that fits the states' time, or dropped (then the node waits for a goal)."""
+        g = self.gate
+        if g.goal_stamp is None or g.goal_stamp - stamp <= self.order.max_jump_ns:
+            return
+        fits = [(s, goal) for s, goal in self._goals if s - stamp <= self.order.max_jump_ns]
+        self.get_logger().warning(f"goal stamp {g.goal_stamp} ns is far ahead of the states ({stamp} ns): "
+                                  f"{'falling back to the goal of ' + str(fits[-1][0]) if fits else 'dropped'}",
+                                  throttle_duration_sec=1.0)
+        g.goal_stamp, g.goal = fits[-1] if fits else (None, None)
+        g._started = None
+
     def _restart(self) -> None:
         """The source's time went back (world restarted): forget the old episode."""
         self.gate = I.EpisodeGate()
@@ -157,6 +172,7 @@ class PlannerNode(Node):
                                       "source restarted? starting over")
             self._restart()
         self.gate.on_goal(stamp, goal)
+        self._goals.append((stamp, goal))
         self._process()
 
     def _on_result(self, msg) -> None:
@@ -185,6 +201,7 @@ class PlannerNode(Node):
         x = I.odometry_to_state(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
         self._check_order(stamp, "state")
+        self._rebase_goal(stamp)
         self._newest_state = stamp if self._newest_state is None else max(self._newest_state, stamp)
         self.states[stamp] = x
         self._bounded(self.states)
