@@ -75,6 +75,7 @@ class Watcher:
         self.answered = set()          # command stamps that equal a state stamp seen
         self.states = set()
         self.last = {}                 # topic -> last message from a node
+        self.on_result = None          # called on every /episode/result (e.g. to reset the world)
         for topic, typ in OUTPUTS.items():
             node.create_subscription(typ, topic, lambda raw, t=topic, ty=typ: self._on(t, ty, raw),
                                      QOS.get(topic, I.STATE_QOS), raw=True)
@@ -88,6 +89,8 @@ class Watcher:
         self.last[topic] = msg
         if bad:
             self.bad.append((topic, bad[:5]))
+        if topic == I.TOPIC_RESULT and self.on_result is not None:
+            self.on_result()
         if topic == I.TOPIC_EGO_ODOM:
             self.states.add(I.stamp_to_ns(msg.header.stamp))
         elif topic == I.TOPIC_COMMAND and msg.points:

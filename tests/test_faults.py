@@ -264,6 +264,7 @@ def test_bad_inputs_on_every_topic(node, graph):
     w = graph["watcher"]
     assert graph["up"], "graph never ran:\n" + _logs(graph)
     pubs = {t: node.create_publisher(typ, t, F.QOS.get(t, I.STATE_QOS)) for t, typ in INPUT_TYPES.items()}
+    graph["pubs"] = pubs   # kept (the latched bogus goal stays offered) while nodes are killed/restarted
     w.spin(1.0)  # match the injectors' publishers
     for name, topic, make in CASES:
         w.spin(5.0, lambda: all(t in w.last for t in (I.TOPIC_EGO_ODOM, I.TOPIC_OBJECTS, I.TOPIC_GOAL,
@@ -329,6 +330,10 @@ def test_recorder_keeps_everything_on_clean_stop(graph):
         r = mcap_io.ReadReport()
         n = sum(1 for _ in mcap_io.iter_mcap(old, r))
         prefixes_ok = prefixes_ok and n > 0
+    # the graph group ends here: the realtime group must not share the domain with this graph
+    F.stop(list(graph["procs"].values()))
+    for pub in graph.get("pubs", {}).values():
+        graph["watcher"].node.destroy_publisher(pub)
     ok = LEDGER.record("record", "clean stop keeps every answered command",
                        rec.returncode == 0 and report.complete and seen <= stamps and prefixes_ok,
                        f"rc={rec.returncode} complete={report.complete} missing={sorted(seen - stamps)[:5]}")
@@ -350,6 +355,8 @@ def realtime(node, policy_file, tmp_path_factory):
     from std_srvs.srv import Trigger
     cli = node.create_client(Trigger, "/world/reset")
     g["up"] = False
+    # keep an episode running through the whole group: restart it whenever one ends
+    w.on_result = lambda: cli.call_async(Trigger.Request())
     if w.spin(60, lambda: cli.service_is_ready()) and \
             w.spin(60, lambda: node.count_subscribers(I.TOPIC_EGO_ODOM) >= 3):
         w.spin(2.0)
@@ -363,6 +370,9 @@ def realtime(node, policy_file, tmp_path_factory):
 
 
 def test_watchdog_safe_stop_while_planner_is_gone(realtime):
+    """Realtime world: the planner SIGKILLed mid-episode; the controller's watchdog must
+    send a braking command (a = a_min, finite, steering held) within its timeout plus
+    one check period (timeout / 2) plus scheduling slack; a restarted planner resumes."""
     w = realtime["watcher"]
     assert realtime["up"], "realtime graph never ran:\n" + _logs(realtime)
     from bimacppo_mpc import MPCConfig

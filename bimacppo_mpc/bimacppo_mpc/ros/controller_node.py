@@ -44,7 +44,7 @@ class ControllerNode(Node):
         self.declare_parameter("watchdog_timeout_s", 0.5)
         self.declare_parameter("publish_horizon", True)
         self.declare_parameter("cache_size", 64)
-        self.declare_parameter("max_stamp_jump_s", 1.0)
+        self.declare_parameter("max_stamp_jump_s", 30.0)
         g = lambda n: self.get_parameter(n).value  # noqa: E731
         name = "controller"
         if g("solver") not in SOLVERS:

@@ -93,7 +93,7 @@ class PlannerNode(Node):
         self.declare_parameter("planner_class", DEFAULT_CLASS)
         self.declare_parameter("cache_size", 64)
         self.declare_parameter("publish_markers", True)
-        self.declare_parameter("max_stamp_jump_s", 1.0)
+        self.declare_parameter("max_stamp_jump_s", 30.0)
         g = lambda n: self.get_parameter(n).value  # noqa: E731
         self.cache_size = int(param_range(g("cache_size"), "cache_size", "planner", lo=1, hi=100_000))
         jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", "planner",
