@@ -65,8 +65,9 @@ def non_finite(msg, path: str = "") -> list:
 class Watcher:
     """Raw subscriber to every output topic; records progress and any non-finite value."""
 
-    def __init__(self, node):
+    def __init__(self, node, executor=None):
         self.node = node
+        self.executor = executor       # for a node in its own context (another DDS domain)
         self.injected = set()          # repr of every message the test published itself
         self.injected_topics = set()
         self.bad = []                  # (topic, paths) of non-finite values from nodes
@@ -110,7 +111,10 @@ class Watcher:
         while time.monotonic() < t_end:
             if until is not None and until():
                 return True
-            rclpy.spin_once(self.node, timeout_sec=0.02)
+            if self.executor is not None:
+                self.executor.spin_once(timeout_sec=0.02)
+            else:
+                rclpy.spin_once(self.node, timeout_sec=0.02)
         return bool(until and until())
 
     def progress(self, ticks: int = 3, timeout: float = 20.0) -> bool:
@@ -119,8 +123,8 @@ class Watcher:
         return self.spin(timeout, lambda: len(self.answered) >= n0 + ticks)
 
 
-def start(*args, log=None):
-    return subprocess.Popen([sys.executable, *args], env=ENV, stdout=log or subprocess.DEVNULL,
+def start(*args, log=None, env=None):
+    return subprocess.Popen([sys.executable, *args], env=env or ENV, stdout=log or subprocess.DEVNULL,
                             stderr=subprocess.STDOUT, text=True)
 
 

@@ -342,15 +342,27 @@ def test_recorder_keeps_everything_on_clean_stop(graph):
 
 # ----------------------------------------------------------------------------- realtime
 @pytest.fixture(scope="module")
-def realtime(node, policy_file, tmp_path_factory):
+def realtime(policy_file, tmp_path_factory):
+    """Its own DDS domain and rclpy context: the graph group's dead nodes linger in the
+    first domain's discovery cache (services and readers that look ready), which made
+    this group's start-up handshake fire too early when both shared a domain."""
+    from rclpy.executors import SingleThreadedExecutor
     d = tmp_path_factory.mktemp("realtime")
-    w = F.Watcher(node)
+    domain = 20 + int(os.environ.get("ROS_DOMAIN_ID", "0")) % 80
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node("fault_realtime", context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    w = F.Watcher(node, executor=ex)
+    env = dict(F.ENV, ROS_DOMAIN_ID=str(domain))
     logs = {k: open(d / f"{k}.log", "w") for k in ("world", "planner", "controller")}
     args = {"planner": _planner_args(policy_file), "controller": (
         *CONTROLLER, "--ros-args", "-p", f"watchdog_timeout_s:={WATCHDOG_S}"),
-        "world": (*_world("realtime", False), "-p", "scenario.n_sv:=0")}
-    procs = {k: F.start(*a, log=logs[k]) for k, a in args.items()}
-    g = dict(watcher=w, procs=procs, args=args, logs=logs, dir=d)
+        # half speed (5 ticks/s): one episode (~120 ticks) outlasts the group on a loaded box
+        "world": (*_world("realtime", False), "-p", "scenario.n_sv:=0", "-p", "rate_factor:=0.5")}
+    procs = {k: F.start(*a, log=logs[k], env=env) for k, a in args.items()}
+    g = dict(watcher=w, procs=procs, args=args, logs=logs, dir=d, node=node, env=env)
     # realtime: start the episode once planner and controller are up (the world ticks on regardless)
     from std_srvs.srv import Trigger
     cli = node.create_client(Trigger, "/world/reset")
@@ -367,6 +379,9 @@ def realtime(node, policy_file, tmp_path_factory):
     F.stop(list(procs.values()))
     for f in logs.values():
         f.close()
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
 
 
 def test_watchdog_safe_stop_while_planner_is_gone(realtime):
@@ -389,7 +404,8 @@ def test_watchdog_safe_stop_while_planner_is_gone(realtime):
     held = got and delay is not None and delay <= bound and all(abs(c[3]) < 1.0 for c in stops)
     LEDGER.record("realtime", "planner SIGKILL -> controller safe stop within watchdog timeout", held,
                   f"delay={delay} bound={bound}")
-    realtime["procs"]["planner"] = F.start(*realtime["args"]["planner"], log=realtime["logs"]["planner"])
+    realtime["procs"]["planner"] = F.start(*realtime["args"]["planner"], log=realtime["logs"]["planner"],
+                                           env=realtime["env"])
     back = w.progress(ticks=5, timeout=60)
     LEDGER.record("realtime", "planner restart -> loop answers again", back and not _alive(realtime))
     assert held, (delay, bound, _logs(realtime))
@@ -397,13 +413,13 @@ def test_watchdog_safe_stop_while_planner_is_gone(realtime):
     assert not w.bad, w.bad[:5]
 
 
-def test_controller_flooded_at_10x(node, realtime):
+def test_controller_flooded_at_10x(realtime):
     """/planner/reference at 10x the tick rate (100 Hz, copies of the live reference and
     garbage mixed) for 3 s: the controller keeps answering real ticks and stays up."""
     w = realtime["watcher"]
     assert realtime["up"]
     assert w.spin(30, lambda: I.TOPIC_REFERENCE in w.last)
-    pub = node.create_publisher(I.Odometry, I.TOPIC_REFERENCE, I.STATE_QOS)
+    pub = realtime["node"].create_publisher(I.Odometry, I.TOPIC_REFERENCE, I.STATE_QOS)
     w.spin(1.0)
     n0 = len(w.answered)
     t_end = time.monotonic() + 3.0
