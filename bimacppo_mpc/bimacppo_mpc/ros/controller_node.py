@@ -144,9 +144,6 @@ class ControllerNode(Node):
     def _on_result(self, msg) -> None:
         res = I.status_to_result(msg)
         self._check_ahead(res.stamp_ns, "result")
-        if self.gate.goal_stamp is not None and res.stamp_ns < self.gate.goal_stamp:
-            raise I.MessageError(f"result stamp {res.stamp_ns} ns is older than the episode's goal "
-                                 f"({self.gate.goal_stamp} ns)")
         self.gate.on_result(res.stamp_ns)
 
     def _on_odom(self, msg) -> None:
