@@ -155,6 +155,20 @@ def test_config_errors_name_file_and_key(tmp_path, doc, key):
     assert str(p) in str(ei.value) and f"'{key}'" in str(ei.value)
 
 
+def test_env_config_reaches_bimacppo_train_and_a_missing_one_is_named(tmp_path):
+    env = tmp_path / "env.yaml"
+    env.write_text("action: {decision_every: 3}\n")
+    ok = tmp_path / "ok.yaml"
+    ok.write_text(f"train: {{env_config: {env}}}\n")
+    argv = ex.train_argv(ex.load_experiment_config(ok), "bimab", 0, resume=False)
+    assert argv[argv.index("--env-config") + 1] == str(env)
+    assert "--env-config" not in ex.train_argv(ex.load_experiment_config(), "bimab", 0, resume=False)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"train: {{env_config: {tmp_path / 'nope.yaml'}}}\n")
+    with pytest.raises(ex.ExperimentError, match=r"train.env_config.*no such file.*nope.yaml"):
+        ex.load_experiment_config(bad)
+
+
 def test_packaged_config_is_the_papers_grid():
     cfg = ex.load_experiment_config()
     assert set(cfg.methods) == set(ex.CURRICULA) and len(cfg.seeds) >= 3

@@ -102,6 +102,7 @@ class TrainSection:
     mpc: str
     ppo_config: str | None
     poll_s: float
+    env_config: str | None = None
 
 
 @dataclass(frozen=True)
@@ -176,7 +177,8 @@ _SCHEMA: dict[str, Any] = {
     "results_md": _str(),
     "img_prefix": _str(),
     "train": {"num_envs": _int(1, 64), "vector": _choice(("async", "sync")), "mpc": _choice(("fast", "ipopt")),
-              "ppo_config": _str(optional=True), "poll_s": _float(0.0, lo_open=True)},
+              "ppo_config": _str(optional=True), "poll_s": _float(0.0, lo_open=True),
+              "env_config": _str(optional=True)},
     "evaluation": {"episodes": _int(1, 1000), "n_sv": _list(_int(0, 3)), "tasks": _list(_choice(TASKS)),
                    "workers": _int(1, 64), "reference_drivers": _list(_choice(DRIVERS), nonempty=False)},
     "overtake": {"map": _choice(MAPS), "source_method": _choice(CURRICULA), "curriculum": _choice(CURRICULA),
@@ -251,6 +253,12 @@ def load_experiment_config(path: str | os.PathLike | None = None, overrides: Map
     if kw["zero_shot_map"] == "three_lane_straight" or kw["train_map"] == "three_lane_straight":
         raise ExperimentError(f"{origin.get('train_map')}: train_map / zero_shot_map must be intersections "
                               "(three_lane_straight is the overtaking map, see the 'overtake' section)")
+    for name in ("ppo_config", "env_config"):
+        f = getattr(kw["train"], name)
+        if f is not None and not os.path.isfile(f):
+            src = origin.get(f"train.{name}", origin.get("train", str(CONFIG_PATH)))
+            raise ExperimentError(f"{src}: key 'train.{name}': no such file {f!r} (paths are relative to "
+                                  f"the working directory, {os.getcwd()})")
     label = "bimacppo_planner/config/experiments.yaml (packaged)"
     return ExperimentConfig(**kw, source=f"{path} over {label}" if path is not None else label)
 
@@ -355,6 +363,8 @@ def train_argv(cfg: ExperimentConfig, method: str, seed: int, resume: bool) -> l
             "--num-envs", str(t.num_envs), "--vector", t.vector, "--mpc", t.mpc, "--no-progress"]
     if t.ppo_config:
         argv += ["--ppo-config", t.ppo_config]
+    if t.env_config:
+        argv += ["--env-config", t.env_config]
     return argv + (["--resume"] if resume else [])
 
 
