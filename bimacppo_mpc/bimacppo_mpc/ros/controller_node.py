@@ -22,7 +22,7 @@ non-finite input is answered with the safe stop instead.
 """
 from __future__ import annotations
 
-from collections import OrderedDict, deque
+from collections import OrderedDict
 
 import numpy as np
 from rclpy.node import Node
@@ -30,11 +30,12 @@ from rclpy.node import Node
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import ConfigError, guarded, param_file, param_range, run_single
+from bimacppo_sim.ros.tick_follower import TickFollower
 
 SOLVERS = ("fast", "ipopt")
 
 
-class ControllerNode(Node):
+class ControllerNode(TickFollower, Node):
     """Thin adapter over ``MPCController.solve``."""
 
     def __init__(self, **kwargs) -> None:
@@ -55,19 +56,15 @@ class ControllerNode(Node):
         self.timeout_ns = int(float(param_range(g("watchdog_timeout_s"), "watchdog_timeout_s", name,
                                                 lo=0.0, hi=60.0, lo_open=True)) * I.NS_PER_S)
         self.horizon = bool(g("publish_horizon"))
-        self.cache_size = int(param_range(g("cache_size"), "cache_size", name, lo=1, hi=100_000))
+        cache_size = int(param_range(g("cache_size"), "cache_size", name, lo=1, hi=100_000))
         jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", name,
                                         lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
-        self.order = I.StampFilter(jump_ns)
+        self._init_tick_follower(cache_size, jump_ns)   # answers: stamp -> JointTrajectory sent
         self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
-        self._newest_state = None        # newest state stamp received (bounds goal/result stamps)
-        self._goals: deque = deque(maxlen=8)   # recent (stamp, goal): fallback for a bogus newer one
         self._warm_up()
-        self.gate = I.EpisodeGate()
         self.u_prev = np.zeros(2)
         self.states: OrderedDict = OrderedDict()     # stamp -> x0
         self.pending: OrderedDict = OrderedDict()    # stamp -> x_ref waiting for its state / goal
-        self.answers: OrderedDict = OrderedDict()    # stamp -> JointTrajectory already sent
         self.solves = 0
         self.failures = 0
         self._last_ref = None
@@ -94,51 +91,14 @@ class ControllerNode(Node):
         self.ctrl.solve(np.array([0.0, 0.0, 1.0, 0.0]), np.array([5.0, 0.0, 1.0, 0.0]), np.zeros(2))
         self.ctrl.reset()
 
-    def _bounded(self, d: OrderedDict) -> None:
-        while len(d) > self.cache_size:
-            d.popitem(last=False)
-
     def _now(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _check_ahead(self, stamp: int, what: str) -> None:
-        """A goal/result far ahead of every state seen would park the episode: refuse it."""
-        if self._newest_state is not None and stamp - self._newest_state > self.order.max_jump_ns:
-            raise I.MessageError(f"{what} stamp {stamp} ns is more than {self.order.max_jump_ns} ns "
-                                 f"ahead of the newest state ({self._newest_state} ns)")
-
-    def _rebase_goal(self, stamp: int) -> None:
-        """A goal stamped far ahead of the states (a bogus latched goal reaching a fresh
-        node before any state could expose it) is replaced by the newest goal received
-        that fits the states' time, or dropped (then the node waits for a goal)."""
-        g = self.gate
-        if g.goal_stamp is None or g.goal_stamp - stamp <= self.order.max_jump_ns:
-            return
-        fits = [(s, goal) for s, goal in self._goals if s - stamp <= self.order.max_jump_ns]
-        self.get_logger().warning(f"goal stamp {g.goal_stamp} ns is far ahead of the states ({stamp} ns): "
-                                  f"{'falling back to the goal of ' + str(fits[-1][0]) if fits else 'dropped'}",
-                                  throttle_duration_sec=1.0)
-        g.goal_stamp, g.goal = fits[-1] if fits else (None, None)
-        g._started = None
-
-    def _restart(self) -> None:
-        """The source's time went back (world restarted): forget the old episode."""
-        self.gate = I.EpisodeGate()
-        self.states.clear(), self.pending.clear(), self.answers.clear()
-        self.order.reset()
-        self._newest_state = None
-        self._goals.clear()
+    def _clear_tick_caches(self) -> None:
+        self.states.clear(), self.pending.clear()
 
     def _on_goal(self, msg) -> None:
-        goal = I.pose_to_goal(msg)
-        stamp = I.stamp_to_ns(msg.header.stamp)
-        self._check_ahead(stamp, "goal")
-        if self.gate.goal_stamp is not None and stamp < self.gate.goal_stamp:
-            self.get_logger().warning(f"goal stamp went back ({stamp} < {self.gate.goal_stamp} ns): "
-                                      "source restarted? starting over")
-            self._restart()
-        self.gate.on_goal(stamp, goal)
-        self._goals.append((stamp, goal))
+        self._accept_goal(msg)
         self._process()
 
     def _on_result(self, msg) -> None:
@@ -149,11 +109,8 @@ class ControllerNode(Node):
     def _on_odom(self, msg) -> None:
         x = I.odometry_to_state(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
-        why = None if stamp in self.answers else self.order.check(stamp)
-        if why is not None:
-            raise I.MessageError(f"state stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
-        self._rebase_goal(stamp)
-        self._newest_state = stamp if self._newest_state is None else max(self._newest_state, stamp)
+        self._check_order(stamp, "state")
+        self._note_state(stamp)
         self.states[stamp] = x
         self._bounded(self.states)
         self._last_state = self._now()

@@ -23,7 +23,7 @@ controller's watchdog then stops the vehicle).
 from __future__ import annotations
 
 import importlib
-from collections import OrderedDict, deque
+from collections import OrderedDict
 
 import numpy as np
 from rclpy.node import Node
@@ -31,6 +31,7 @@ from rclpy.node import Node
 from bimacppo_planner.decision import EnvConfig, step_reward
 from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import ConfigError, guarded, one_line, param_file, param_range, run_single
+from bimacppo_sim.ros.tick_follower import TickFollower
 
 DEFAULT_CLASS = "bimacppo_planner.agent:HighLevelPlanner"
 
@@ -83,7 +84,7 @@ def episode_return(lane_changes, outcome: str, facts: dict, reward_cfg) -> float
                                      float(facts["dist_to_goal"])))
 
 
-class PlannerNode(Node):
+class PlannerNode(TickFollower, Node):
     """Thin adapter over ``HighLevelPlanner.reset/step``."""
 
     def __init__(self, planner=None, **kwargs) -> None:
@@ -95,13 +96,11 @@ class PlannerNode(Node):
         self.declare_parameter("publish_markers", True)
         self.declare_parameter("max_stamp_jump_s", 30.0)
         g = lambda n: self.get_parameter(n).value  # noqa: E731
-        self.cache_size = int(param_range(g("cache_size"), "cache_size", "planner", lo=1, hi=100_000))
+        cache_size = int(param_range(g("cache_size"), "cache_size", "planner", lo=1, hi=100_000))
         jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", "planner",
                                         lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
-        self.order = I.StampFilter(jump_ns)
+        self._init_tick_follower(cache_size, jump_ns)   # answers: stamp -> reference sent
         self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
-        self._newest_state = None
-        self._goals: deque = deque(maxlen=8)   # recent (stamp, goal): fallback for a bogus newer one
         if planner is None:
             planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"))
         self.hp = planner
@@ -112,10 +111,8 @@ class PlannerNode(Node):
             cfg = EnvConfig.load()
         self.reward_cfg = cfg.reward
         self.decision_every = int(cfg.action.decision_every)
-        self.gate = I.EpisodeGate()
         self.states: OrderedDict = OrderedDict()
         self.objects: OrderedDict = OrderedDict()
-        self.answers: OrderedDict = OrderedDict()
         self.decisions_ep: list = []     # (stamp, lane_change) of each decision of the current episode
         self.ticks_ep = 0                # ticks answered in the current episode
         self.x_imr = None                # the decision held between decisions (decision_every > 1)
@@ -131,48 +128,12 @@ class PlannerNode(Node):
         sub(I.Odometry, I.TOPIC_EGO_ODOM, self._on_odom, I.STATE_QOS)
         sub(I.MultiDOFJointTrajectory, I.TOPIC_OBJECTS, self._on_objects, I.STATE_QOS)
 
-    def _bounded(self, d: OrderedDict) -> None:
-        while len(d) > self.cache_size:
-            d.popitem(last=False)
-
-    def _check_ahead(self, stamp: int, what: str) -> None:
-        """A goal/result far ahead of every state seen would park the episode: refuse it."""
-        if self._newest_state is not None and stamp - self._newest_state > self.order.max_jump_ns:
-            raise I.MessageError(f"{what} stamp {stamp} ns is more than {self.order.max_jump_ns} ns "
-                                 f"ahead of the newest state ({self._newest_state} ns)")
-
-    def _rebase_goal(self, stamp: int) -> None:
-        """A goal stamped far ahead of the states (a bogus latched goal reaching a fresh
-        node before any state could expose it) is replaced by the newest goal received
-        that fits the states' time, or dropped (then the node waits for a goal)."""
-        g = self.gate
-        if g.goal_stamp is None or g.goal_stamp - stamp <= self.order.max_jump_ns:
-            return
-        fits = [(s, goal) for s, goal in self._goals if s - stamp <= self.order.max_jump_ns]
-        self.get_logger().warning(f"goal stamp {g.goal_stamp} ns is far ahead of the states ({stamp} ns): "
-                                  f"{'falling back to the goal of ' + str(fits[-1][0]) if fits else 'dropped'}",
-                                  throttle_duration_sec=1.0)
-        g.goal_stamp, g.goal = fits[-1] if fits else (None, None)
-        g._started = None
-
-    def _restart(self) -> None:
-        """The source's time went back (world restarted): forget the old episode."""
-        self.gate = I.EpisodeGate()
-        self.states.clear(), self.objects.clear(), self.answers.clear()
-        self.order.reset()
-        self._newest_state = None
+    def _clear_tick_caches(self) -> None:
+        self.states.clear(), self.objects.clear()
         self.decisions_ep, self.ticks_ep = [], 0
 
     def _on_goal(self, msg) -> None:
-        goal = I.pose_to_goal(msg)
-        stamp = I.stamp_to_ns(msg.header.stamp)
-        self._check_ahead(stamp, "goal")
-        if self.gate.goal_stamp is not None and stamp < self.gate.goal_stamp:
-            self.get_logger().warning(f"goal stamp went back ({stamp} < {self.gate.goal_stamp} ns): "
-                                      "source restarted? starting over")
-            self._restart()
-        self.gate.on_goal(stamp, goal)
-        self._goals.append((stamp, goal))
+        self._accept_goal(msg)
         self._process()
 
     def _on_result(self, msg) -> None:
@@ -204,18 +165,10 @@ class PlannerNode(Node):
         x = I.odometry_to_state(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
         self._check_order(stamp, "state")
-        self._rebase_goal(stamp)
-        self._newest_state = stamp if self._newest_state is None else max(self._newest_state, stamp)
+        self._note_state(stamp)
         self.states[stamp] = x
         self._bounded(self.states)
         self._process()
-
-    def _check_order(self, stamp: int, what: str) -> None:
-        if stamp in self.answers:
-            return  # a re-sent tick: answered from the cache
-        why = self.order.check(stamp)
-        if why is not None:
-            raise I.MessageError(f"{what} stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
 
     def _on_objects(self, msg) -> None:
         _, svs = I.objects_to_svs(msg)

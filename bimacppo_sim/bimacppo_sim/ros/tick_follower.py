@@ -1,0 +1,100 @@
+"""The stamp and episode bookkeeping shared by the nodes that answer the world's ticks.
+
+Planner and controller both answer stamped states, one message per tick, and both must
+survive the same faults (docs/faults.md): stale or far-future stamps, a bogus latched
+goal reaching a fresh node first, a source that restarts and sends older stamps, results
+and goals arriving in either order (DDS orders per topic only). Keeping those rules in
+one place keeps the two nodes from drifting apart; each node adds only what it caches
+per tick (``_clear_tick_caches``).
+
+No rclpy import: the mixin uses only ``self.get_logger()`` of the rclpy ``Node`` it is
+mixed into, so it is importable (and testable) without a ROS context.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+
+from . import interfaces as I
+
+GOAL_HISTORY = 8
+"""Recent goals kept as fallbacks for a goal stamped far ahead of the states."""
+
+
+class TickFollower:
+    """Mixin: episode gate, stamp order filter, answer cache and goal handling."""
+
+    def _init_tick_follower(self, cache_size: int, max_jump_ns: int) -> None:
+        self.cache_size = int(cache_size)
+        self.order = I.StampFilter(int(max_jump_ns))
+        self.gate = I.EpisodeGate()
+        self.answers: OrderedDict = OrderedDict()   # stamp -> message already sent for that tick
+        self._newest_state = None                   # newest state stamp (bounds goal/result stamps)
+        self._goals: deque = deque(maxlen=GOAL_HISTORY)   # recent (stamp, goal)
+
+    def _clear_tick_caches(self) -> None:
+        """Drop what the node caches per tick (states, pending inputs); called on a restart."""
+
+    def _bounded(self, d: OrderedDict) -> None:
+        while len(d) > self.cache_size:
+            d.popitem(last=False)
+
+    def _check_ahead(self, stamp: int, what: str) -> None:
+        """A goal/result far ahead of every state seen would park the episode: refuse it."""
+        if self._newest_state is not None and stamp - self._newest_state > self.order.max_jump_ns:
+            raise I.MessageError(f"{what} stamp {stamp} ns is more than {self.order.max_jump_ns} ns "
+                                 f"ahead of the newest state ({self._newest_state} ns)")
+
+    def _check_order(self, stamp: int, what: str) -> None:
+        """Refuse a stale or far-future stamp; a re-sent tick (already answered) passes."""
+        if stamp in self.answers:
+            return
+        why = self.order.check(stamp)
+        if why is not None:
+            raise I.MessageError(f"{what} stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
+
+    def _rebase_goal(self, stamp: int) -> None:
+        """A goal stamped far ahead of the states (a bogus latched goal reaching a fresh
+        node before any state could expose it) is replaced by the newest goal received
+        that fits the states' time, or dropped (then the node waits for a goal)."""
+        g = self.gate
+        if g.goal_stamp is None or g.goal_stamp - stamp <= self.order.max_jump_ns:
+            return
+        fits = [(s, goal) for s, goal in self._goals if s - stamp <= self.order.max_jump_ns]
+        self.get_logger().warning(f"goal stamp {g.goal_stamp} ns is far ahead of the states ({stamp} ns): "
+                                  f"{'falling back to the goal of ' + str(fits[-1][0]) if fits else 'dropped'}",
+                                  throttle_duration_sec=1.0)
+        g.goal_stamp, g.goal = fits[-1] if fits else (None, None)
+        g._started = None
+
+    def _note_state(self, stamp: int) -> None:
+        """Bookkeeping for a state that passed ``_check_order``."""
+        self._rebase_goal(stamp)
+        self._newest_state = stamp if self._newest_state is None else max(self._newest_state, stamp)
+
+    def _restart(self) -> None:
+        """The source's time went back (world restarted): forget the old episode."""
+        self.gate = I.EpisodeGate()
+        self.answers.clear()
+        self.order.reset()
+        self._newest_state = None
+        self._goals.clear()
+        self._clear_tick_caches()
+
+    def _accept_goal(self, msg) -> None:
+        """Validate a /goal_pose message and start its episode (restarting on a stamp that went back)."""
+        goal = I.pose_to_goal(msg)
+        stamp = I.stamp_to_ns(msg.header.stamp)
+        self._check_ahead(stamp, "goal")
+        # A real new episode starts after every tick answered so far (ticks only grow). A goal
+        # older than the current one, or not newer than an answered tick, means the source's
+        # time went back: a world restarted during its first episode sends the *same* goal
+        # stamp again, so "older than the current goal" alone misses it.
+        went_back = self.gate.goal_stamp is not None and stamp < self.gate.goal_stamp
+        in_past = self.order.newest is not None and stamp <= self.order.newest
+        if went_back or in_past:
+            self.get_logger().warning(f"goal stamp {stamp} ns is behind the current episode (goal "
+                                      f"{self.gate.goal_stamp} ns, answered up to {self.order.newest} ns): "
+                                      "source restarted? starting over")
+            self._restart()
+        self.gate.on_goal(stamp, goal)
+        self._goals.append((stamp, goal))
