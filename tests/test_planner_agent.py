@@ -27,6 +27,29 @@ def test_planner_route_from_poses_equals_world_route():
         np.testing.assert_array_equal(route, w.route)
 
 
+def test_route_from_inside_the_junction_follows_the_episode_route():
+    """A planner (re)started while the EV crosses the junction (no straight lane under it)
+    still gets a route: the episode's own route from the nearest point on, same spacing."""
+    env = IntersectionEnv()
+    for seed in range(6):
+        env.reset(options={"n_sv": 0, "task": seed % 3, "scenario_seed": seed})
+        w = env.world
+        inside = [p for p in w.route if env.road.locate(p[0], p[1]) is None]
+        assert inside, "every intersection route crosses the junction box"
+        for p in inside[:: max(1, len(inside) // 3)]:
+            route = route_for(env.road, np.array(p), w.goal)
+            assert np.hypot(*(route[0, :2] - p[:2])) < 0.5
+            # the rest is the episode's route: same end, every waypoint on it (within 0.3 m)
+            np.testing.assert_allclose(route[-1, :2], w.route[-1, :2], atol=0.5)
+            d = np.hypot(route[:, None, 0] - w.route[None, :, 0], route[:, None, 1] - w.route[None, :, 1])
+            assert d.min(axis=1).max() < 1.6   # waypoints interleave the 3 m spaced originals
+            assert abs(len(route) - (len(w.route) - int(np.argmin(np.hypot(*(w.route[:, :2] - p[:2]).T))))) <= 1
+    # the heading picks the connector: driving against it is not a route start
+    p = inside[len(inside) // 2]
+    with pytest.raises(ValueError, match="not on a straight lane"):
+        route_for(env.road, np.array([p[0], p[1], p[2] + np.pi]), w.goal)
+
+
 def test_planner_on_raw_states_matches_env_decisions(policy_file):
     env = IntersectionEnv()
     policy = load_policy(policy_file)

@@ -67,7 +67,8 @@ def env_config_of(policy: Policy) -> EnvConfig:
 def route_for(road: RoadMap, start: np.ndarray, goal: np.ndarray, world_config: WorldConfig | None = None) -> np.ndarray:
     """The A* reference waypoint set from a start pose to a goal pose on the planner's own map
     copy — the same function the world calls at reset, so both get the same waypoints."""
-    return reference_route(road, start[:2], goal[:2], world_config)
+    return reference_route(road, start[:2], goal[:2], world_config,
+                           start_psi=float(start[2]) if len(start) > 2 else None)
 
 
 class HighLevelPlanner:
