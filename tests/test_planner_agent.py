@@ -50,6 +50,27 @@ def test_route_from_inside_the_junction_follows_the_episode_route():
         route_for(env.road, np.array([p[0], p[1], p[2] + np.pi]), w.goal)
 
 
+def test_route_for_a_late_start_in_a_lane_that_cannot_turn():
+    """A planner that sees the episode late (restarted, or its goal delivered late) may find
+    the EV still in the right lane for a left turn, inside the no-lane-change zone: it gets
+    a route that changes lane late and ends at the goal, instead of "no route"."""
+    env = IntersectionEnv()
+    road = env.road
+    for task, lane in ((0, "south_in_1"), (2, "south_in_0")):
+        env.reset(options={"n_sv": 0, "task": task, "scenario_seed": 1})
+        goal, full = env.world.goal, env.world.route
+        length = road.lanes[lane].length
+        for s in (length - road.cfg.no_lane_change_zone + 1.0, length - 0.1):
+            x, y, psi = road.lane_point(lane, s)
+            with pytest.raises(ValueError, match="no route"):   # the strict planner cannot
+                road.plan_route(lane, s, road.locate(goal[0], goal[1])[0], 10.0)
+            route = route_for(road, np.array([x, y, psi]), goal)
+            np.testing.assert_allclose(route[0, :2], [x, y], atol=1e-9)
+            assert np.hypot(*(route[:, :2] - goal[:2]).T).min() < 2.0   # passes the goal
+            np.testing.assert_allclose(route[-1, :2], full[-1, :2], atol=3.5)  # and runs on past it
+            assert np.all(np.hypot(*np.diff(route[:, :2], axis=0).T) < 4.0)     # no jumps
+
+
 def test_planner_on_raw_states_matches_env_decisions(policy_file):
     env = IntersectionEnv()
     policy = load_policy(policy_file)

@@ -326,11 +326,14 @@ class RoadMap:
         return None if loc is None else (loc[0], self.lanes[loc[0]].index)
 
     # ------------------------------------------------------------------ routing
-    def plan_route(self, start_lane: str, s_start: float, goal_lane: str, s_goal: float):
+    def plan_route(self, start_lane: str, s_start: float, goal_lane: str, s_goal: float,
+                   no_lane_change_zone: float | None = None):
         """A* over the lane graph (stations every graph_step m; lane-change edges of
         lane_change_length m between adjacent same-direction lanes; junction connectors).
-        Returns the route polyline (K, 2) from the start point to the goal point."""
+        Returns the route polyline (K, 2) from the start point to the goal point.
+        ``no_lane_change_zone`` overrides the configured one (a late re-plan may need 0)."""
         cfg = self.cfg
+        zone = cfg.no_lane_change_zone if no_lane_change_zone is None else float(no_lane_change_zone)
         for lid in (start_lane, goal_lane):
             if lid not in self.lanes or self.lanes[lid].kind == "conn":
                 raise ValueError(f"route endpoints must be straight lanes, got {lid!r}")
@@ -380,7 +383,7 @@ class RoadMap:
             dk = max(1, int(round(cfg.lane_change_length / st)))
             s_here = k * st
             lc_ok = k + dk <= m and (ln.kind == "out" or ln.kind == "road" or
-                                     (ln.kind == "in" and (k + dk) * st <= ln.length - cfg.no_lane_change_zone))
+                                     (ln.kind == "in" and (k + dk) * st <= ln.length - zone))
             if lc_ok:
                 for nb in (ln.left, ln.right):
                     if nb is not None:

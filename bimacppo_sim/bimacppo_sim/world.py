@@ -515,9 +515,37 @@ def reference_route(road: RoadMap, start_xy, goal_xy, config: WorldConfig | None
                          f"of map {road.id!r}")
     end_s = road.lanes[goal[0]].length
     s_end = min(goal[1] + cfg.route_tail, end_s)
-    pts, conns, _ = road.plan_route(start[0], start[1], goal[0], s_end)
+    try:
+        pts, conns, _ = road.plan_route(start[0], start[1], goal[0], s_end)
+    except ValueError:
+        if with_polyline:   # the world's own reset: a start that cannot reach its goal is a bug
+            raise
+        pts = _late_route(road, start_xy, start, goal[0], s_end)
+        if pts is None:
+            raise
+        return _resample(pts, cfg.waypoint_spacing)
     route = _resample(pts, cfg.waypoint_spacing)
     return (route, pts, conns) if with_polyline else route
+
+
+def _late_route(road: RoadMap, start_xy, start, goal_lane: str, s_end: float):
+    """A planner that first sees an episode late (restarted, or its goal delivered after
+    the EV moved on) may find the EV in a lane that can no longer reach the goal under the
+    no-lane-change zone. Recover rather than stall: first allow a lane change right up to
+    the junction, then start from the adjacent lane at the same station (the first
+    waypoint is then one lane over, a lane-change length ahead, or at the stop line if that
+    is nearer: the MPC steers across). None if neither reaches."""
+    ln = road.lanes[start[0]]
+    for lid in (start[0], ln.left, ln.right):
+        if lid is None:
+            continue
+        s0 = start[1] if lid == start[0] else min(start[1] + road.cfg.lane_change_length, road.lanes[lid].length)
+        try:
+            pts, _, _ = road.plan_route(lid, s0, goal_lane, s_end, no_lane_change_zone=0.0)
+        except ValueError:
+            continue
+        return pts if lid == start[0] else np.vstack([np.asarray(start_xy, float)[None, :2], pts])
+    return None
 
 
 def _route_from_junction(road: RoadMap, start_xy, start_psi, goal, cfg):
