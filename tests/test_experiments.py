@@ -3,6 +3,7 @@ aggregation maths on synthetic data, the report on partial results, errors, and 
 n_slow option the overtaking fine-tune relies on."""
 import json
 import os
+import time
 
 import numpy as np
 import pytest
@@ -95,7 +96,9 @@ def test_evaluate_uses_cache_until_the_policy_changes(pipeline):
     ex.evaluate_all(cfg, echo=said.append)
     assert said and all("cached" in s for s in said)
     policy = cfg.run_dir("random", 0) / "policy.pt"
-    t = policy.stat().st_mtime + 10
+    # newer than every CSV the fixture wrote (its evaluation can take > 10 s after training
+    # on a loaded machine, so "policy mtime + 10 s" is not enough)
+    t = time.time() + 10
     os.utime(policy, (t, t))
     said.clear()
     ex.evaluate_all(cfg, echo=said.append)
