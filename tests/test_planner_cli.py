@@ -123,3 +123,22 @@ def test_policy_carries_its_env_config(trained):
     assert pol.meta["curriculum"] == "bimab" and pol.meta["seed"] == 1
     assert env_config_of(pol) == EnvConfig.load()
     assert HighLevelPlanner(pol, __import__("bimacppo_sim").load_map("dual_lane_4way")).cfg == EnvConfig.load()
+
+
+def test_train_on_the_straight_road_folds_tasks_and_slows_svs(trained, tmp_path, capsys):
+    """Every curriculum draws left/straight/right; the 3-lane road has only "straight", so
+    training there (the overtaking fine-tune, from a checkpoint) must fold the tasks, not
+    crash on the first reset."""
+    _, cfg, run = trained
+    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
+    out = tmp_path / "overtake"
+    rc = train_main(["--curriculum", "random", "--episodes", "3", "--seed", "2", "--run-dir", str(out),
+                     "--map", "three_lane_straight", "--slow-svs", "2", "--init-policy", str(ckpt),
+                     "--ppo-config", str(cfg), "--no-progress"])
+    assert rc == 0
+    assert "only the task(s) ['straight']" in capsys.readouterr().err
+    recs = [json.loads(line) for line in (out / "history.jsonl").read_text().splitlines()]
+    assert len(recs) == 3 and all(r["outcome"] in ("success", "collision", "timeout") for r in recs)
+    assert json.loads((out / "run.json").read_text())["slow_svs"] == 2
+    assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "r"), "--slow-svs", "7"]) == 2
+    assert "--slow-svs" in capsys.readouterr().err

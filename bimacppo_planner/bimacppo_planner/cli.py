@@ -19,11 +19,20 @@ CURRICULA = ("bimab", "fixed", "random", "manual", "rd")
 MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
 
 
-def make_env(map_id: str, env_config: EnvConfig, mpc_solver: str):
-    """Picklable env factory for the vector env's worker processes."""
+def make_env(map_id: str, env_config: EnvConfig, mpc_solver: str, slow_svs: int = 0):
+    """Picklable env factory for the vector env's worker processes.
+
+    Every curriculum draws all three tasks (its arms); a map with fewer (the straight road
+    has only "straight") folds them onto its own, and ``slow_svs`` > 0 slows up to that many
+    SVs per episode (paper §IV-C overtaking) — both via ``experiments.SlowTraffic``."""
     from .env import IntersectionEnv
 
-    return IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver)
+    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver)
+    if slow_svs > 0 or len(env.tasks) < 3:
+        from .experiments import SlowTraffic
+
+        env = SlowTraffic(env, slow_svs)
+    return env
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -48,6 +57,9 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-policy", type=Path, default=None,
                    help="start from this training checkpoint (fine-tuning, e.g. overtaking)")
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast", help="NMPC solver in the loop")
+    p.add_argument("--slow-svs", type=int, default=0, metavar="N",
+                   help="slow down 0..N SVs per episode (drawn from the reset seed), for overtaking "
+                        "fine-tunes on three_lane_straight (paper: 2); default 0")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (logs only)")
     return p
 
@@ -60,6 +72,10 @@ def train_main(argv=None) -> int:
 
     if args.episodes < 1:
         print("bimacppo-train: --episodes must be >= 1", file=sys.stderr)
+        return 2
+    if not 0 <= args.slow_svs <= 3:
+        print(f"bimacppo-train: --slow-svs must be in 0..3 (at most N_sv^max SVs), got {args.slow_svs}",
+              file=sys.stderr)
         return 2
     try:
         env_cfg = EnvConfig.load(args.env_config)
@@ -80,10 +96,16 @@ def train_main(argv=None) -> int:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "run.json").write_text(json.dumps({
         "curriculum": args.curriculum, "episodes": args.episodes, "seed": args.seed, "map": args.map,
-        "mpc": args.mpc, "env_config": env_cfg.to_dict(), "argv": sys.argv[1:] if argv is None else list(argv),
+        "mpc": args.mpc, "slow_svs": args.slow_svs, "env_config": env_cfg.to_dict(), "argv": sys.argv[1:] if argv is None else list(argv),
     }, indent=2))
     agent = load_agent(args.init_policy) if args.init_policy else None
-    env_fn = functools.partial(make_env, args.map, env_cfg, args.mpc)
+    env_fn = functools.partial(make_env, args.map, env_cfg, args.mpc, args.slow_svs)
+    from bimacppo_sim import load_map
+
+    tasks = sorted(load_map(args.map).turns)
+    if len(tasks) < 3:
+        print(f"bimacppo-train: map {args.map!r} has only the task(s) {tasks}: the curriculum's task "
+              "arms all run as that task (its arm statistics are then not meaningful)", file=sys.stderr)
     trainer = Trainer(env_fn, sched, run_dir, pcfg, tcfg, agent=agent)
     res = trainer.train(args.episodes, resume=args.resume)
     _stamp_policy(run_dir / "policy.pt", env_cfg, args)
