@@ -37,6 +37,7 @@ setup(
             "bimacppo-evaluate = bimacppo_planner.cli:evaluate_main",
             "bimacppo-report = bimacppo_planner.report:main",
             "bimacppo-experiments = bimacppo_planner.experiments:main",
+            "bimacppo-imitate = bimacppo_planner.imitation:main",
         ],
     },
 )
