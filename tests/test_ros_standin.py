@@ -116,17 +116,22 @@ def policy_file(tmp_path_factory):
     return path
 
 
-def test_planner_and_controller_answer_a_plain_publisher(policy_file):
+def _planner_and_controller(policy_file):
+    """Real planner and controller nodes on sim time, as a world-less graph runs them."""
     from bimacppo_mpc.ros.controller_node import ControllerNode
     from bimacppo_planner.ros.planner_node import PlannerNode
 
-    rclpy.init()
     sim = Parameter("use_sim_time", value=True)
+    planner = PlannerNode(parameter_overrides=[Parameter("policy_path", value=str(policy_file)),
+                                               Parameter("map_id", value=MAP), sim])
+    return planner, ControllerNode(parameter_overrides=[sim])
+
+
+def test_planner_and_controller_answer_a_plain_publisher(policy_file):
+    rclpy.init()
     nodes, ex = [], SingleThreadedExecutor()
     try:
-        planner = PlannerNode(parameter_overrides=[Parameter("policy_path", value=str(policy_file)),
-                                                   Parameter("map_id", value=MAP), sim])
-        ctrl = ControllerNode(parameter_overrides=[sim])
+        planner, ctrl = _planner_and_controller(policy_file)
         world = ScriptedWorld(EPISODES)
         probe = Node("probe")
         returns = []
@@ -164,16 +169,10 @@ def test_source_restarted_during_its_first_episode_is_followed(policy_file):
     goal stamp (tick 1): planner and controller must notice the source went back and answer
     the new ticks from the new states: not drop them as stale, not re-serve the answers
     cached for the dead source's ticks of the same stamps."""
-    from bimacppo_mpc.ros.controller_node import ControllerNode
-    from bimacppo_planner.ros.planner_node import PlannerNode
-
     rclpy.init()
-    sim = Parameter("use_sim_time", value=True)
     nodes, ex = [], SingleThreadedExecutor()
     try:
-        planner = PlannerNode(parameter_overrides=[Parameter("policy_path", value=str(policy_file)),
-                                                   Parameter("map_id", value=MAP), sim])
-        ctrl = ControllerNode(parameter_overrides=[sim])
+        planner, ctrl = _planner_and_controller(policy_file)
         first = ScriptedWorld(EPISODES[:1])
         nodes = [planner, ctrl, first]
         for n in nodes:
