@@ -306,13 +306,22 @@ def test_sigkill_and_restart(graph, victim):
     assert not w.bad, w.bad[:5]
 
 
+def _recorder_records(g, topic) -> bool:
+    """The (latest) recorder process has subscribed to ``topic`` (it logs each one it records)."""
+    text = (g["dir"] / "recorder.log").read_text()
+    return f"recording {topic} [" in text.rsplit("recording to ", 1)[-1]
+
+
 def test_recorder_keeps_everything_on_clean_stop(graph):
     """After all the above: SIGINT the recorder; its (last) file is complete and holds
     every command the loop answered while it was recording."""
     w = graph["watcher"]
     assert graph["up"]
     w.spin(60, lambda: graph["mcaps"][-1].exists())   # a restarted recorder is up and writing
-    w.spin(2.0)                                        # ... and has discovered the topics (0.5 s period)
+    # ... and subscribed to the commands: DDS discovery after a restart can take seconds on a
+    # loaded machine, so wait for the recorder's own "recording <topic>" line, not a fixed time
+    assert w.spin(60, lambda: _recorder_records(graph, I.TOPIC_COMMAND)), _logs(graph)
+    w.spin(1.0)                                        # endpoint matching after the subscription
     t_from = time.monotonic()
     w.progress(ticks=10, timeout=30)
     seen = {st for t, st, *_ in w.commands if t >= t_from and st in w.answered}

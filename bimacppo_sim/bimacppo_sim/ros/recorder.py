@@ -161,7 +161,7 @@ class McapRecorder(Node):
         self._subs[topic] = self.create_subscription(
             msg_cls, topic, lambda data, c=cid, t=topic: self._on_message(c, t, data),
             adapted_request(records, self.depth), raw=True)
-        self.get_logger().debug(f"recording {topic} [{type_name}]")
+        self.get_logger().info(f"recording {topic} [{type_name}]")
 
     # ------------------------------------------------------------------ writing
     def _on_message(self, channel_id: int, topic: str, data: bytes) -> None:
