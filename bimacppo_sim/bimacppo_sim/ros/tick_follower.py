@@ -85,15 +85,13 @@ class TickFollower:
         goal = I.pose_to_goal(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
         self._check_ahead(stamp, "goal")
-        # A real new episode starts after every tick answered so far (ticks only grow). A goal
-        # older than the current one, or not newer than an answered tick, means the source's
-        # time went back: a world restarted during its first episode sends the *same* goal
-        # stamp again, so "older than the current goal" alone misses it.
-        went_back = self.gate.goal_stamp is not None and stamp < self.gate.goal_stamp
-        in_past = self.order.newest is not None and stamp <= self.order.newest
-        if went_back or in_past:
-            self.get_logger().warning(f"goal stamp {stamp} ns is behind the current episode (goal "
-                                      f"{self.gate.goal_stamp} ns, answered up to {self.order.newest} ns): "
+        # Only a goal *older* than the current one means the source's time went back. A goal
+        # with the current goal's stamp is a re-delivery (latched topic) and must not reset
+        # anything: treating it as a restart cleared the goal history and let a bogus
+        # far-future goal stall the loop (fault suite). Known gap: a world restarted within
+        # its first episode re-sends that same stamp and is only noticed at its next goal.
+        if self.gate.goal_stamp is not None and stamp < self.gate.goal_stamp:
+            self.get_logger().warning(f"goal stamp went back ({stamp} < {self.gate.goal_stamp} ns): "
                                       "source restarted? starting over")
             self._restart()
         self.gate.on_goal(stamp, goal)
