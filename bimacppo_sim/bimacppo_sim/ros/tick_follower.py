@@ -55,11 +55,14 @@ class TickFollower:
     def _rebase_goal(self, stamp: int) -> None:
         """A goal stamped far ahead of the states (a bogus latched goal reaching a fresh
         node before any state could expose it) is replaced by the newest goal received
-        that fits the states' time, or dropped (then the node waits for a goal)."""
+        that fits the states' time, or dropped (then the node waits for the world's next
+        re-send of its goal); goals that do not fit leave the history."""
         g = self.gate
         if g.goal_stamp is None or g.goal_stamp - stamp <= self.order.max_jump_ns:
             return
         fits = [(s, goal) for s, goal in self._goals if s - stamp <= self.order.max_jump_ns]
+        self._goals.clear()
+        self._goals.extend(fits)
         self.get_logger().warning(f"goal stamp {g.goal_stamp} ns is far ahead of the states ({stamp} ns): "
                                   f"{'falling back to the goal of ' + str(fits[-1][0]) if fits else 'dropped'}",
                                   throttle_duration_sec=1.0)
@@ -80,19 +83,35 @@ class TickFollower:
         self._goals.clear()
         self._clear_tick_caches()
 
+    def _remember_goal(self, stamp: int, goal) -> None:
+        """History of distinct goals, newest last: a re-delivery (latched topic, the world's
+        periodic re-send) moves its goal to the end instead of adding a copy, so repeats
+        cannot push the genuine goal out of the history a rebase falls back on."""
+        for i, (s, _) in enumerate(self._goals):
+            if s == stamp:
+                del self._goals[i]
+                break
+        self._goals.append((stamp, goal))
+
     def _accept_goal(self, msg) -> None:
         """Validate a /goal_pose message and start its episode (restarting on a stamp that went back)."""
         goal = I.pose_to_goal(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
         self._check_ahead(stamp, "goal")
-        # Only a goal *older* than the current one means the source's time went back. A goal
-        # with the current goal's stamp is a re-delivery (latched topic) and must not reset
-        # anything: treating it as a restart cleared the goal history and let a bogus
-        # far-future goal stall the loop (fault suite). Known gap: a world restarted within
-        # its first episode re-sends that same stamp and is only noticed at its next goal.
-        if self.gate.goal_stamp is not None and stamp < self.gate.goal_stamp:
-            self.get_logger().warning(f"goal stamp went back ({stamp} < {self.gate.goal_stamp} ns): "
+        # Only a goal *older* than the current one, seen while states are known, means the
+        # source's time went back. A goal with the current goal's stamp is a re-delivery and
+        # must not reset anything: treating it as a restart cleared the goal history and let
+        # a bogus far-future goal stall the loop (fault suite). Before any state, nothing
+        # can tell a bogus latched goal from a genuine one; both are kept and the first
+        # state picks (``_rebase_goal``). Known gap: a world restarted within its first
+        # episode re-sends that same stamp and is only noticed at its next goal.
+        cur = self.gate.goal_stamp
+        if cur is not None and stamp < cur and self._newest_state is not None:
+            self.get_logger().warning(f"goal stamp went back ({stamp} < {cur} ns): "
                                       "source restarted? starting over")
             self._restart()
+            cur = None
+        if cur is None or stamp > cur:
+            self.get_logger().info(f"episode goal ({goal[0]:.2f}, {goal[1]:.2f}) stamped {stamp} ns")
         self.gate.on_goal(stamp, goal)
-        self._goals.append((stamp, goal))
+        self._remember_goal(stamp, goal)

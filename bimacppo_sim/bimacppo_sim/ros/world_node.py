@@ -11,6 +11,12 @@ Two clocking modes (parameter ``mode``):
   command older than ``command_timeout_s`` (sim time) or none at all means brake
   (a_min of the vehicle config) with the steering held.
 
+While an episode runs, its goal is re-published every ``goal_resend_period_s`` (wall;
+same stamp, so receivers see a repeat, not a new episode). /goal_pose is latched, but a
+late-joining reader does not always get the latched sample: with Fast DDS, a planner or
+controller restarted after a SIGKILL sometimes never received it and then waited for a
+goal forever (fault suite). The re-send bounds that wait.
+
 Sim time starts at one tick and only grows, also across resets (a reset advances it by
 one tick), so every published state has a unique stamp and /clock never jumps back.
 
@@ -54,6 +60,7 @@ class WorldNode(Node):
         d("rate_factor", 1.0)
         d("command_timeout_s", 0.3)
         d("resend_period_s", 0.5)
+        d("goal_resend_period_s", 1.0)
         d("publish_markers", True)
         p = lambda n: self.get_parameter(n).value  # noqa: E731
         self.mode = p("mode")
@@ -65,6 +72,8 @@ class WorldNode(Node):
                                                         lo=0.0, hi=60.0, lo_open=True)) * I.NS_PER_S)
         self.resend_period = float(param_range(p("resend_period_s"), "resend_period_s", "world",
                                                lo=0.0, hi=60.0, lo_open=True))
+        self.goal_resend_period = float(param_range(p("goal_resend_period_s"), "goal_resend_period_s", "world",
+                                                    lo=0.0, hi=3600.0))
         self.markers_on = bool(p("publish_markers"))
         try:
             road = load_map(p("map_id"))
@@ -97,12 +106,16 @@ class WorldNode(Node):
         self.trajectory = []           # (stamp_ns, ego) of the current episode
         self._last_cmd: Optional[tuple] = None   # (stamp_ns, u)
         self._last_pub = 0.0
+        self._goal_msg = None          # the current episode's /goal_pose (re-sent while active)
+        self._last_goal_pub = 0.0
         self._delta_hold = 0.0
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if self.mode == "lockstep":
             self.create_timer(max(self.resend_period, 0.01), self._resend, clock=steady)
         else:
             self.create_timer(self.world.dt / self.rate_factor, self._realtime_step, clock=steady)
+        if self.goal_resend_period > 0.0:
+            self.create_timer(self.goal_resend_period / 2.0, self._resend_goal, clock=steady)
         if p("autostart"):
             self.reset_episode()
 
@@ -145,7 +158,9 @@ class WorldNode(Node):
         self.trajectory = []
         self._last_cmd = None
         self._delta_hold = 0.0
-        self.pub_goal.publish(I.goal_to_pose(self.world.goal, self.stamp_ns()))
+        self._goal_msg = I.goal_to_pose(self.world.goal, self.stamp_ns())
+        self.pub_goal.publish(self._goal_msg)
+        self._last_goal_pub = time.monotonic()
         self._publish_state()
         return sc
 
@@ -207,6 +222,12 @@ class WorldNode(Node):
     def _resend(self) -> None:
         if self.active and time.monotonic() - self._last_pub >= self.resend_period:
             self._publish_state()
+
+    def _resend_goal(self) -> None:
+        if self.active and self._goal_msg is not None and \
+                time.monotonic() - self._last_goal_pub >= self.goal_resend_period:
+            self.pub_goal.publish(self._goal_msg)
+            self._last_goal_pub = time.monotonic()
 
     def _realtime_step(self) -> None:
         if not self.active:

@@ -1,0 +1,56 @@
+"""The world node's goal re-send (docs/ros.md): a reader that missed the latched goal gets
+it again while the episode runs, with the episode's stamp, so it is a repeat and not a new
+episode. Real world node, real DDS, one executor."""
+import time
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytestmark = pytest.mark.ros
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
+from bimacppo_sim.ros import interfaces as I  # noqa: E402
+
+
+def _goals_received(period_s: float, listen_s: float) -> list:
+    """Stamps of every /goal_pose a late, volatile reader gets from a lockstep world that
+    nobody answers (its episode stays at the first tick)."""
+    from bimacppo_sim.ros.world_node import WorldNode
+
+    rclpy.init()
+    ex = SingleThreadedExecutor()
+    nodes = []
+    try:
+        world = WorldNode(parameter_overrides=[Parameter("goal_resend_period_s", value=period_s),
+                                               Parameter("scenario.n_sv", value=1)])
+        probe = Node("goal_probe")
+        stamps = []
+        volatile = I.QoSProfile(depth=10)   # no latched sample: only what is published from now on
+        probe.create_subscription(I.PoseStamped, I.TOPIC_GOAL,
+                                  lambda m: stamps.append(I.stamp_to_ns(m.header.stamp)), volatile)
+        nodes = [world, probe]
+        for n in nodes:
+            ex.add_node(n)
+        t_end = time.monotonic() + listen_s
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.02)
+        assert world.active and world.episodes == 0
+        return stamps, world.stamp_ns()
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()
+
+
+def test_world_resends_the_running_goal_with_its_stamp():
+    stamps, first_tick = _goals_received(0.2, 2.0)
+    assert len(stamps) >= 4, stamps       # ~9 expected in 2 s; a loaded box may lose a few
+    assert set(stamps) == {first_tick}    # the episode's stamp: a repeat, not a new episode
+
+
+def test_goal_resend_can_be_switched_off():
+    stamps, _ = _goals_received(0.0, 1.5)
+    assert stamps == []                   # only the latched sample, which this reader does not take

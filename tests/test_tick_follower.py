@@ -1,0 +1,124 @@
+"""The goal and stamp rules planner and controller share (``TickFollower``), without DDS.
+
+Each case is an arrival order the fault suite produced on a loaded machine (docs/faults.md):
+a bogus latched goal stamped far in the future reaching a restarted node before or after
+the world's genuine goal, latched re-deliveries, and a world that really restarted.
+"""
+import pytest
+
+pytest.importorskip("rclpy")
+
+from bimacppo_sim.ros import interfaces as I  # noqa: E402
+from bimacppo_sim.ros.tick_follower import GOAL_HISTORY, TickFollower  # noqa: E402
+
+S = I.NS_PER_S
+TICK = S // 10
+GOAL = (-23.0, 1.75, 0.0)
+BOGUS_STAMP = 10_013 * S   # the fault suite's far-future goal
+
+
+class _Log:
+    def __init__(self):
+        self.lines = []
+
+    def info(self, msg, **_):
+        self.lines.append(("info", msg))
+
+    def warning(self, msg, **_):
+        self.lines.append(("warning", msg))
+
+
+class Follower(TickFollower):
+    """The mixin with the two hooks a node provides."""
+
+    def __init__(self):
+        self.log = _Log()
+        self.cleared = 0
+        self._init_tick_follower(cache_size=16, max_jump_ns=30 * S)
+
+    def get_logger(self):
+        return self.log
+
+    def _clear_tick_caches(self):
+        self.cleared += 1
+
+    def goal(self, stamp, xy=GOAL):
+        self._accept_goal(I.goal_to_pose(xy, stamp))
+
+    def state(self, stamp):
+        self._check_order(stamp, "state")
+        self._note_state(stamp)
+
+
+def test_bogus_goal_after_the_genuine_one_on_a_fresh_node_falls_back():
+    f = Follower()
+    f.goal(11_900_000_000)
+    f.goal(BOGUS_STAMP)                 # nothing to refuse it with yet: no state seen
+    assert f.gate.goal_stamp == BOGUS_STAMP
+    f.state(23_200_000_000)
+    assert f.gate.goal_stamp == 11_900_000_000
+    assert f.gate.classify(23_200_000_000) == "active"
+    assert f.gate.new_episode()
+
+
+def test_genuine_goal_after_a_bogus_one_on_a_fresh_node_is_not_a_restart():
+    f = Follower()
+    f.goal(BOGUS_STAMP)
+    f.goal(11_900_000_000)              # older, but no state says time went back
+    assert f.cleared == 0 and not any("restarted" in m for _, m in f.log.lines)
+    f.state(23_200_000_000)
+    assert f.gate.goal_stamp == 11_900_000_000
+    assert f.gate.classify(23_300_000_000) == "active"
+
+
+def test_bogus_goal_alone_is_dropped_and_the_next_resend_of_the_genuine_goal_starts_the_episode():
+    f = Follower()
+    f.goal(BOGUS_STAMP)
+    f.state(23_200_000_000)
+    assert f.gate.goal_stamp is None and f.gate.classify(23_200_000_000) == "wait"
+    f.goal(11_900_000_000)              # the world's periodic goal re-send
+    assert f.gate.goal_stamp == 11_900_000_000
+    assert f.gate.classify(23_300_000_000) == "active"
+
+
+def test_bogus_goal_is_refused_once_states_are_known():
+    f = Follower()
+    f.goal(100_000_000)
+    f.state(100_000_000)
+    with pytest.raises(I.MessageError, match="ahead of the newest state"):
+        f.goal(BOGUS_STAMP)
+    assert f.gate.goal_stamp == 100_000_000
+
+
+def test_re_deliveries_do_not_push_the_genuine_goal_out_of_the_history():
+    f = Follower()
+    f.goal(11_900_000_000)
+    for _ in range(3 * GOAL_HISTORY):   # latched re-deliveries and periodic re-sends
+        f.goal(11_900_000_000)
+    f.goal(BOGUS_STAMP)
+    assert len(f._goals) == 2
+    f.state(12_000_000_000)
+    assert f.gate.goal_stamp == 11_900_000_000
+    assert [s for s, _ in f._goals] == [11_900_000_000]   # the bogus goal left the history
+
+
+def test_a_repeat_of_the_current_goal_changes_nothing():
+    f = Follower()
+    f.goal(11_900_000_000)
+    f.state(11_900_000_000)
+    assert f.gate.new_episode()
+    f.goal(11_900_000_000)
+    assert not f.gate.new_episode() and f.cleared == 0
+    assert sum(1 for lvl, m in f.log.lines if lvl == "info" and "episode goal" in m) == 1
+
+
+def test_an_older_goal_while_states_are_known_is_a_restart():
+    f = Follower()
+    f.goal(11_900_000_000)
+    f.state(12_000_000_000)
+    f.goal(100_000_000)                 # the world restarted: its time went back
+    assert f.cleared == 1 and f._newest_state is None
+    assert f.gate.goal_stamp == 100_000_000
+    f.state(100_000_000)                # no longer "stale": the order filter was reset
+    assert f.gate.classify(100_000_000) == "active"
+    assert any("restarted" in m for lvl, m in f.log.lines if lvl == "warning")
