@@ -115,8 +115,8 @@ class McapRecorder(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(float(p("discovery_period_s").value), self.discover, clock=steady)
         self.create_timer(float(p("flush_period_s").value), self.flush, clock=steady)
+        self.get_logger().info(f"recording to {self.path}")   # first: the topic lines below belong to it
         self.discover()
-        self.get_logger().info(f"recording to {self.path}")
 
     # ------------------------------------------------------------------ discovery
     def _selected(self, topic: str) -> bool:
