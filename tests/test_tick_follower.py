@@ -21,8 +21,8 @@ class _Log:
     def __init__(self):
         self.lines = []
 
-    def info(self, msg, **_):
-        self.lines.append(("info", msg))
+    def debug(self, msg, **_):
+        self.lines.append(("debug", msg))
 
     def warning(self, msg, **_):
         self.lines.append(("warning", msg))
@@ -109,7 +109,7 @@ def test_a_repeat_of_the_current_goal_changes_nothing():
     assert f.gate.new_episode()
     f.goal(11_900_000_000)
     assert not f.gate.new_episode() and f.cleared == 0
-    assert sum(1 for lvl, m in f.log.lines if lvl == "info" and "episode goal" in m) == 1
+    assert sum(1 for lvl, m in f.log.lines if lvl == "debug" and "episode goal" in m) == 1
 
 
 def test_an_older_goal_while_states_are_known_is_a_restart():

@@ -112,6 +112,6 @@ class TickFollower:
             self._restart()
             cur = None
         if cur is None or stamp > cur:
-            self.get_logger().info(f"episode goal ({goal[0]:.2f}, {goal[1]:.2f}) stamped {stamp} ns")
+            self.get_logger().debug(f"episode goal ({goal[0]:.2f}, {goal[1]:.2f}) stamped {stamp} ns")
         self.gate.on_goal(stamp, goal)
         self._remember_goal(stamp, goal)
