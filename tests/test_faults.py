@@ -389,6 +389,7 @@ def realtime(policy_file, tmp_path_factory):
     # realtime: start the episode once planner and controller are up (the world ticks on regardless)
     from std_srvs.srv import Trigger
     cli = node.create_client(Trigger, "/world/reset")
+    g["reset"] = cli
     g["up"] = False
     # keep an episode running through the whole group: restart it whenever one ends
     w.on_result = lambda: cli.call_async(Trigger.Request())
@@ -458,6 +459,50 @@ def test_controller_flooded_at_10x(realtime):
     LEDGER.record("realtime", "controller flooded with /planner/reference at 10x", held,
                   f"published={k} answered_during={during} after={after}")
     assert held, (k, during, after, _logs(realtime))
+    assert not w.bad, w.bad[:5]
+
+
+def test_world_restarted_in_realtime(realtime):
+    """The realtime world SIGKILLed and restarted (usually within its first episode here:
+    one episode outlasts the group, so its first goal comes again with the same stamp,
+    which the goal rule cannot tell from a repeat). Its ticks are older than the newest
+    answered one; planner and controller must notice the restart from them
+    (``STALE_RESTART``) and answer the new world's ticks."""
+    from std_srvs.srv import Trigger
+    w = realtime["watcher"]
+    assert realtime["up"]
+    # Counted: the new world's ticks below the old world's newest minus the nodes' answer
+    # caches (64 ticks): recovering once the new world's time caught up with the old one
+    # (what the nodes did before STALE_RESTART), or a tick answered from the old world's
+    # cache, does not count. So the old world runs 100 ticks first (20 s at 5 ticks/s).
+    cached = 64 * TICK
+    assert w.spin(60, lambda: max(w.answered, default=0) >= 100 * TICK)
+    goal0 = I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp)
+    newest = max(w.answered)
+    p = realtime["procs"]["world"]
+    p.send_signal(signal.SIGKILL)
+    p.wait(timeout=10)
+    n0 = len(w.commands)
+    realtime["procs"]["world"] = F.start(*realtime["args"]["world"], log=realtime["logs"]["world"],
+                                         env=realtime["env"])
+    cli = realtime["reset"]
+    # the dead world's service lingers in the discovery cache and looks ready: re-send the
+    # request until the new world answers one
+    fut, t_end = None, time.monotonic() + 60
+    while time.monotonic() < t_end and not (fut is not None and fut.done()):
+        fut = cli.call_async(Trigger.Request())
+        w.spin(3.0, lambda: fut.done())
+    t_reset = time.monotonic()   # > 3 s after the kill: no command for the old world is in flight
+    goal1 = I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp)
+
+    def answered_new():   # the new world's ticks, while its time is still below the old one's
+        return {st for t, st, *_ in w.commands[n0:] if t >= t_reset and st in w.states and st < newest - cached}
+    back = w.spin(60, lambda: len(answered_new()) >= 5)
+    held = back and fut.done() and not _alive(realtime)
+    LEDGER.record("realtime", "world SIGKILL+restart -> the new world's ticks answered", held,
+                  f"same_goal_stamp={goal0 == goal1} below_old_newest={goal1 < newest} "
+                  f"answered={len(answered_new())}")
+    assert held, (len(answered_new()), _logs(realtime))
     assert not w.bad, w.bad[:5]
 
 

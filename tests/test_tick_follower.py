@@ -9,7 +9,7 @@ import pytest
 pytest.importorskip("rclpy")
 
 from bimacppo_sim.ros import interfaces as I  # noqa: E402
-from bimacppo_sim.ros.tick_follower import GOAL_HISTORY, TickFollower  # noqa: E402
+from bimacppo_sim.ros.tick_follower import GOAL_HISTORY, STALE_RESTART, TickFollower  # noqa: E402
 
 S = I.NS_PER_S
 TICK = S // 10
@@ -48,6 +48,13 @@ class Follower(TickFollower):
     def state(self, stamp):
         self._check_order(stamp, "state")
         self._note_state(stamp)
+
+    def answer(self, stamp):
+        """What a node does once it answered the tick."""
+        self.state(stamp)
+        self.order.answered(stamp)
+        self.answers[stamp] = f"answer {stamp}"
+        self._bounded(self.answers)
 
 
 def test_bogus_goal_after_the_genuine_one_on_a_fresh_node_falls_back():
@@ -122,3 +129,57 @@ def test_an_older_goal_while_states_are_known_is_a_restart():
     f.state(100_000_000)                # no longer "stale": the order filter was reset
     assert f.gate.classify(100_000_000) == "active"
     assert any("restarted" in m for lvl, m in f.log.lines if lvl == "warning")
+
+
+def _ran_first_episode(f, ticks=100):
+    f.goal(TICK)
+    for k in range(1, ticks + 1):
+        f.answer(k * TICK)
+
+
+def test_a_world_restarted_within_its_first_episode_is_noticed_by_its_stale_states():
+    """Same goal stamp again (tick 1), then states from tick 2 on: all older than the newest
+    answered tick. The goal rule cannot see it; STALE_RESTART states in a row do."""
+    f = Follower()
+    _ran_first_episode(f)
+    f.goal(TICK, xy=(23.0, -5.25, 0.0))   # the restarted world's first goal: same stamp, new scenario
+    for k in range(2, 2 + STALE_RESTART - 1):
+        with pytest.raises(I.MessageError, match="stale"):
+            f.state(k * TICK)
+    assert f.cleared == 0
+    f.state((1 + STALE_RESTART) * TICK)   # the run is long enough: a restart, this state accepted
+    assert f.cleared == 1 and not f.answers
+    assert f.gate.goal_stamp == TICK and tuple(f.gate.goal[:2]) == (23.0, -5.25)   # the goal kept
+    assert f.gate.classify((1 + STALE_RESTART) * TICK) == "active" and f.gate.new_episode()
+    f.answer((2 + STALE_RESTART) * TICK)   # the new world's ticks are answered from here on
+
+
+def test_single_late_states_and_resent_ticks_never_restart():
+    f = Follower()
+    _ran_first_episode(f)
+    for k in range(101, 101 + 3 * STALE_RESTART):
+        with pytest.raises(I.MessageError, match="stale"):
+            f.state(5 * TICK)             # a late sample ...
+        f.state(100 * TICK)               # ... and a re-sent tick (already answered) in between
+        f.answer(k * TICK)                # ... and the loop going on
+    for _ in range(3 * STALE_RESTART):
+        f.state(100 * TICK)               # re-sends of an answered tick count as nothing
+    assert f.cleared == 0 and f.gate.goal_stamp == TICK
+
+
+def test_stale_run_restart_drops_goals_after_the_new_time():
+    """A world restarted in a later episode whose new goal has not arrived yet: no goal
+    of the old world is before its states, so the node waits for the new goal."""
+    f = Follower()
+    _ran_first_episode(f)
+    f.goal(150 * TICK)
+    f.answer(150 * TICK)
+    for k in range(2, 2 + STALE_RESTART):
+        try:
+            f.state(k * TICK)
+        except I.MessageError:
+            pass
+    assert f.cleared == 1 and f.gate.goal_stamp is None
+    assert f.gate.classify((2 + STALE_RESTART) * TICK) == "wait"
+    f.goal(TICK)
+    assert f.gate.classify((2 + STALE_RESTART) * TICK) == "active"

@@ -17,7 +17,8 @@ with a throttled warning, the node never dies of one); references older than the
 answered one of the episode, or more than ``max_stamp_jump_s`` ahead of it, are dropped
 (``StampFilter``); a goal or result stamped that far ahead of every state seen is
 dropped too (it would stall the episode); a goal older than the current one means the
-source restarted (time went back): the episode state is reset. A solve that yields a
+source restarted (time went back), as do 5 stale states in a row: the episode state is
+reset. A solve that yields a
 non-finite input is answered with the safe stop instead.
 """
 from __future__ import annotations

@@ -16,7 +16,8 @@ the world, so it is computed here.
 Faults (docs/faults.md): callbacks are ``runtime.guarded``; states older than the newest
 answered one of the episode or more than ``max_stamp_jump_s`` ahead are dropped
 (``StampFilter``), as are goals/results stamped that far ahead of every state seen; a goal
-older than the current one (the source restarted) resets the episode state; a policy step
+older than the current one, or 5 stale states in a row (the source restarted), resets the
+episode state; a policy step
 that raises or returns a non-finite x_IMR is logged and that tick left unanswered (the
 controller's watchdog then stops the vehicle).
 """

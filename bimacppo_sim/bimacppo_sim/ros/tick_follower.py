@@ -19,6 +19,12 @@ from . import interfaces as I
 GOAL_HISTORY = 8
 """Recent goals kept as fallbacks for a goal stamped far ahead of the states."""
 
+STALE_RESTART = 5
+"""States in a row older than the newest answered one (none accepted in between) that mean
+the source restarted. A late or replayed sample is one message; a restarted source sends
+nothing else. This catches the restart the goal rule cannot see: a world restarted within
+its first episode re-sends its first goal with the same stamp."""
+
 
 class TickFollower:
     """Mixin: episode gate, stamp order filter, answer cache and goal handling."""
@@ -30,6 +36,7 @@ class TickFollower:
         self.answers: OrderedDict = OrderedDict()   # stamp -> message already sent for that tick
         self._newest_state = None                   # newest state stamp (bounds goal/result stamps)
         self._goals: deque = deque(maxlen=GOAL_HISTORY)   # recent (stamp, goal)
+        self._stale_states = 0                      # stale states in a row (STALE_RESTART)
 
     def _clear_tick_caches(self) -> None:
         """Drop what the node caches per tick (states, pending inputs); called on a restart."""
@@ -45,10 +52,16 @@ class TickFollower:
                                  f"ahead of the newest state ({self._newest_state} ns)")
 
     def _check_order(self, stamp: int, what: str) -> None:
-        """Refuse a stale or far-future stamp; a re-sent tick (already answered) passes."""
+        """Refuse a stale or far-future stamp; a re-sent tick (already answered) passes.
+        ``STALE_RESTART`` stale states in a row restart the node at this state's time."""
         if stamp in self.answers:
             return
         why = self.order.check(stamp)
+        if what == "state":
+            self._stale_states = self._stale_states + 1 if why == "stale" else 0
+            if self._stale_states >= STALE_RESTART:
+                self._restart_at(stamp)
+                return
         if why is not None:
             raise I.MessageError(f"{what} stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
 
@@ -81,7 +94,21 @@ class TickFollower:
         self.order.reset()
         self._newest_state = None
         self._goals.clear()
+        self._stale_states = 0
         self._clear_tick_caches()
+
+    def _restart_at(self, stamp: int) -> None:
+        """Restart on a run of stale states, keeping the current goal if it is not after them
+        (a world restarted within its first episode sent it again with the same stamp); an
+        older goal in the history belongs to the old run of the source."""
+        g = self.gate
+        keep = [(g.goal_stamp, g.goal)] if g.goal_stamp is not None and g.goal_stamp <= stamp else []
+        self.get_logger().warning(f"{self._stale_states} states in a row older than the newest answered one "
+                                  f"({stamp} < {self.order.newest} ns): source restarted? starting over")
+        self._restart()
+        if keep:
+            self.gate.on_goal(*keep[-1])
+            self._remember_goal(*keep[-1])
 
     def _remember_goal(self, stamp: int, goal) -> None:
         """History of distinct goals, newest last: a re-delivery (latched topic, the world's
@@ -103,8 +130,8 @@ class TickFollower:
         # must not reset anything: treating it as a restart cleared the goal history and let
         # a bogus far-future goal stall the loop (fault suite). Before any state, nothing
         # can tell a bogus latched goal from a genuine one; both are kept and the first
-        # state picks (``_rebase_goal``). Known gap: a world restarted within its first
-        # episode re-sends that same stamp and is only noticed at its next goal.
+        # state picks (``_rebase_goal``). A world restarted within its first episode
+        # re-sends that same stamp: its stale states restart the node (``STALE_RESTART``).
         cur = self.gate.goal_stamp
         if cur is not None and stamp < cur and self._newest_state is not None:
             self.get_logger().warning(f"goal stamp went back ({stamp} < {cur} ns): "
