@@ -4,6 +4,7 @@ Each case is an arrival order the fault suite produced on a loaded machine (docs
 a bogus latched goal stamped far in the future reaching a restarted node before or after
 the world's genuine goal, latched re-deliveries, and a world that really restarted.
 """
+import numpy as np
 import pytest
 
 pytest.importorskip("rclpy")
@@ -45,16 +46,21 @@ class Follower(TickFollower):
     def goal(self, stamp, xy=GOAL):
         self._accept_goal(I.goal_to_pose(xy, stamp))
 
-    def state(self, stamp):
-        self._check_order(stamp, "state")
+    def state(self, stamp, x=None):
+        self._check_order(stamp, "state", _x(stamp) if x is None else x)
         self._note_state(stamp)
 
-    def answer(self, stamp):
+    def answer(self, stamp, x=None):
         """What a node does once it answered the tick."""
-        self.state(stamp)
+        x = _x(stamp) if x is None else x
+        self.state(stamp, x)
         self.order.answered(stamp)
-        self.answers[stamp] = f"answer {stamp}"
-        self._bounded(self.answers)
+        self._answered(stamp, f"answer {stamp}", x)
+
+
+def _x(stamp, run=0):
+    """The EV state a source publishes at ``stamp`` (``run``: which start of the source)."""
+    return np.array([stamp / S - 20.0 * run, 1.75, 5.0 + run, 0.0])
 
 
 def test_bogus_goal_after_the_genuine_one_on_a_fresh_node_falls_back():
@@ -183,3 +189,21 @@ def test_stale_run_restart_drops_goals_after_the_new_time():
     assert f.gate.classify((2 + STALE_RESTART) * TICK) == "wait"
     f.goal(TICK)
     assert f.gate.classify((2 + STALE_RESTART) * TICK) == "active"
+
+
+def test_a_restarted_world_whose_ticks_are_still_cached_is_not_answered_from_the_cache():
+    """The old world ran 10 ticks (all cached), then restarted: its ticks 2.. carry cached
+    stamps but other states. They are no re-sends; STALE_RESTART of them restart the node."""
+    f = Follower()
+    _ran_first_episode(f, ticks=10)
+    f.state(5 * TICK)                     # a genuine re-send (same state): answered from the cache
+    f.goal(TICK)                          # the restarted world's first goal, same stamp
+    for k in range(2, 2 + STALE_RESTART - 1):
+        with pytest.raises(I.MessageError, match="differs from the state answered"):
+            f.state(k * TICK, _x(k * TICK, run=1))
+    assert f.cleared == 0 and 5 * TICK in f.answers
+    k = 1 + STALE_RESTART
+    f.state(k * TICK, _x(k * TICK, run=1))
+    assert f.cleared == 1 and not f.answers
+    assert f.gate.goal_stamp == TICK and f.gate.classify(k * TICK) == "active"
+    f.answer((k + 1) * TICK, _x((k + 1) * TICK, run=1))

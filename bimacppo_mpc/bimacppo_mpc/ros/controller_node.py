@@ -110,7 +110,7 @@ class ControllerNode(TickFollower, Node):
     def _on_odom(self, msg) -> None:
         x = I.odometry_to_state(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
-        self._check_order(stamp, "state")
+        self._check_order(stamp, "state", x)
         self._note_state(stamp)
         self.states[stamp] = x
         self._bounded(self.states)
@@ -170,8 +170,7 @@ class ControllerNode(TickFollower, Node):
                     horizon = None
             self.u_prev = u
             cmd = I.command_to_trajectory(u, stamp, horizon, self.cfg.dt)
-            self.answers[stamp] = cmd
-            self._bounded(self.answers)
+            self._answered(stamp, cmd, self.states[stamp])
             self.pub.publish(cmd)
 
     def _watchdog(self) -> None:

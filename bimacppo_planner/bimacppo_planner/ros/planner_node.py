@@ -3,7 +3,7 @@
 For each state stamp s that has both /ego/odom and /objects, it publishes
 /planner/reference (x_IMR) stamped s. A new /goal_pose starts an episode
 (``hp.reset(ego, goal)``: A* on the planner's own copy of the road map); repeats of a
-stamp are answered from a cache, so the policy's internal state (waypoint tracker)
+stamp (the same state again) are answered from a cache, so the policy's internal state (waypoint tracker)
 advances once per tick exactly as in the in-process loop. As in ``IntersectionEnv``, a
 decision is taken every ``action.decision_every`` ticks of the agent's environment config
 and held in between.
@@ -165,7 +165,7 @@ class PlannerNode(TickFollower, Node):
     def _on_odom(self, msg) -> None:
         x = I.odometry_to_state(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
-        self._check_order(stamp, "state")
+        self._check_order(stamp, "state", x)
         self._note_state(stamp)
         self.states[stamp] = x
         self._bounded(self.states)
@@ -221,8 +221,7 @@ class PlannerNode(TickFollower, Node):
             self.order.answered(stamp)
             x_imr = self.x_imr
             ref = I.reference_to_odometry(x_imr, stamp)
-            self.answers[stamp] = ref
-            self._bounded(self.answers)
+            self._answered(stamp, ref, ego)
             self.pub_ref.publish(ref)
             if self.markers_on:
                 self.pub_markers.publish(I.reference_markers(x_imr, stamp))

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 from collections import OrderedDict, deque
 
+import numpy as np
+
 from . import interfaces as I
 
 GOAL_HISTORY = 8
@@ -34,6 +36,7 @@ class TickFollower:
         self.order = I.StampFilter(int(max_jump_ns))
         self.gate = I.EpisodeGate()
         self.answers: OrderedDict = OrderedDict()   # stamp -> message already sent for that tick
+        self._answered_states: OrderedDict = OrderedDict()   # stamp -> the state that answer was for
         self._newest_state = None                   # newest state stamp (bounds goal/result stamps)
         self._goals: deque = deque(maxlen=GOAL_HISTORY)   # recent (stamp, goal)
         self._stale_states = 0                      # stale states in a row (STALE_RESTART)
@@ -51,19 +54,32 @@ class TickFollower:
             raise I.MessageError(f"{what} stamp {stamp} ns is more than {self.order.max_jump_ns} ns "
                                  f"ahead of the newest state ({self._newest_state} ns)")
 
-    def _check_order(self, stamp: int, what: str) -> None:
-        """Refuse a stale or far-future stamp; a re-sent tick (already answered) passes.
+    def _answered(self, stamp: int, msg, state) -> None:
+        """Cache the answer sent for a tick, with the state it answered."""
+        self.answers[stamp] = msg
+        self._answered_states[stamp] = np.array(state, dtype=float)
+        self._bounded(self.answers)
+        self._bounded(self._answered_states)
+
+    def _check_order(self, stamp: int, what: str, state=None) -> None:
+        """Refuse a stale or far-future stamp; a re-sent tick (already answered, the same
+        ``state``) passes. A state with an answered stamp but other values is no re-send:
+        a restarted source reached a stamp still cached (it counts as stale).
         ``STALE_RESTART`` stale states in a row restart the node at this state's time."""
         if stamp in self.answers:
-            return
-        why = self.order.check(stamp)
+            if state is None or np.array_equal(self._answered_states.get(stamp), state):
+                return
+            why = "stale"
+            detail = "differs from the state answered at that stamp"
+        else:
+            why = detail = self.order.check(stamp)
         if what == "state":
             self._stale_states = self._stale_states + 1 if why == "stale" else 0
             if self._stale_states >= STALE_RESTART:
                 self._restart_at(stamp)
                 return
         if why is not None:
-            raise I.MessageError(f"{what} stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
+            raise I.MessageError(f"{what} stamp {stamp} ns {detail} (newest answered {self.order.newest} ns)")
 
     def _rebase_goal(self, stamp: int) -> None:
         """A goal stamped far ahead of the states (a bogus latched goal reaching a fresh
@@ -91,6 +107,7 @@ class TickFollower:
         """The source's time went back (world restarted): forget the old episode."""
         self.gate = I.EpisodeGate()
         self.answers.clear()
+        self._answered_states.clear()
         self.order.reset()
         self._newest_state = None
         self._goals.clear()
@@ -102,13 +119,13 @@ class TickFollower:
         (a world restarted within its first episode sent it again with the same stamp); an
         older goal in the history belongs to the old run of the source."""
         g = self.gate
-        keep = [(g.goal_stamp, g.goal)] if g.goal_stamp is not None and g.goal_stamp <= stamp else []
+        keep = (g.goal_stamp, g.goal) if g.goal_stamp is not None and g.goal_stamp <= stamp else None
         self.get_logger().warning(f"{self._stale_states} states in a row older than the newest answered one "
                                   f"({stamp} < {self.order.newest} ns): source restarted? starting over")
         self._restart()
-        if keep:
-            self.gate.on_goal(*keep[-1])
-            self._remember_goal(*keep[-1])
+        if keep is not None:
+            self.gate.on_goal(*keep)
+            self._remember_goal(*keep)
 
     def _remember_goal(self, stamp: int, goal) -> None:
         """History of distinct goals, newest last: a re-delivery (latched topic, the world's
