@@ -207,6 +207,8 @@ CASES = [
     ("result far-future stamp", I.TOPIC_RESULT, lambda w, s: _result(s + FAR)),
     ("result negative stamp", I.TOPIC_RESULT, lambda w, s: _result(-TICK)),
     ("result stale stamp", I.TOPIC_RESULT, lambda w, s: _result(TICK)),
+    ("result at its goal's stamp", I.TOPIC_RESULT,
+     lambda w, s: _result(I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp))),
     ("reference NaN", I.TOPIC_REFERENCE, lambda w, s: _odom(w.last[I.TOPIC_REFERENCE], y=NAN, stamp=s)),
     ("reference inf speed", I.TOPIC_REFERENCE, lambda w, s: _odom(w.last[I.TOPIC_REFERENCE], v=-INF, stamp=s)),
     ("reference huge", I.TOPIC_REFERENCE, lambda w, s: _odom(w.last[I.TOPIC_REFERENCE], x=-1e300, stamp=s)),

@@ -207,3 +207,13 @@ def test_a_restarted_world_whose_ticks_are_still_cached_is_not_answered_from_the
     assert f.cleared == 1 and not f.answers
     assert f.gate.goal_stamp == TICK and f.gate.classify(k * TICK) == "active"
     f.answer((k + 1) * TICK, _x((k + 1) * TICK, run=1))
+
+
+def test_a_result_at_its_goals_stamp_is_refused():
+    """An episode lasts at least one step: such a result would end it at its first tick."""
+    f = Follower()
+    f.goal(TICK)
+    f.answer(TICK)
+    with pytest.raises(I.MessageError, match="first tick"):
+        f._check_result(TICK)
+    f._check_result(2 * TICK)             # a genuine result, one step later, passes

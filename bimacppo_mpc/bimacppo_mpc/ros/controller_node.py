@@ -104,7 +104,7 @@ class ControllerNode(TickFollower, Node):
 
     def _on_result(self, msg) -> None:
         res = I.status_to_result(msg)
-        self._check_ahead(res.stamp_ns, "result")
+        self._check_result(res.stamp_ns)
         self.gate.on_result(res.stamp_ns)
 
     def _on_odom(self, msg) -> None:

@@ -139,13 +139,14 @@ class PlannerNode(TickFollower, Node):
 
     def _on_result(self, msg) -> None:
         res = I.status_to_result(msg)
-        self._check_ahead(res.stamp_ns, "result")
+        self._check_result(res.stamp_ns)
         # the episode whose decisions are held starts at its first decision (the next goal
-        # may already be here: DDS does not order result and goal across topics)
+        # may already be here: DDS does not order result and goal across topics); its
+        # result comes at least one tick later
         start = self.decisions_ep[0][0] if self.decisions_ep else self.gate.goal_stamp
-        if start is not None and res.stamp_ns < start:
-            raise I.MessageError(f"result stamp {res.stamp_ns} ns is older than the episode it would end "
-                                 f"({start} ns)")
+        if start is not None and res.stamp_ns <= start:
+            raise I.MessageError(f"result stamp {res.stamp_ns} ns is not after the start of the episode it "
+                                 f"would end ({start} ns)")
         was_active = self.gate.goal_stamp is not None and not self.gate.ended
         self.gate.on_result(res.stamp_ns)
         if not was_active:

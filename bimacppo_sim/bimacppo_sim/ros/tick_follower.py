@@ -61,6 +61,14 @@ class TickFollower:
         self._bounded(self.answers)
         self._bounded(self._answered_states)
 
+    def _check_result(self, stamp: int) -> None:
+        """Refuse a result that cannot end the current episode genuinely: stamped far ahead
+        of the states, or at the episode's first tick (an episode lasts at least one step;
+        the fault suite's stale result at tick 1 ended the first episode and stalled it)."""
+        self._check_ahead(stamp, "result")
+        if self.gate.goal_stamp is not None and stamp == self.gate.goal_stamp:
+            raise I.MessageError(f"result stamp {stamp} ns is its episode's first tick (its goal's stamp)")
+
     def _check_order(self, stamp: int, what: str, state=None) -> None:
         """Refuse a stale or far-future stamp; a re-sent tick (already answered, the same
         ``state``) passes. A state with an answered stamp but other values is no re-send:
