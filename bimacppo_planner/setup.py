@@ -15,14 +15,14 @@ setup(
     version="0.1.0",
     packages=find_packages(include=[PACKAGE, PACKAGE + ".*"]),
     include_package_data=True,
-    package_data={PACKAGE: ["**/*.yaml", "**/*.json", "**/*.pt"]},
+    package_data={PACKAGE: ["**/*.yaml", "**/*.md", "**/*.pt"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         ("share/" + PACKAGE, ["package.xml"]),
         ("share/" + PACKAGE + "/config", glob("config/*.yaml")),
         ("share/" + PACKAGE + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=['numpy', 'torch', 'gymnasium', 'pyyaml', 'tqdm', 'bimacppo_sim', 'bimacppo_mpc', 'bimacppo_curriculum'],
+    install_requires=['numpy', 'torch', 'pyyaml', 'bimacppo_sim', 'bimacppo_mpc', 'bimacppo_curriculum'],
     zip_safe=False,
     maintainer="bimacppo maintainers",
     maintainer_email="maintainers@bimacppo.dev",
@@ -33,11 +33,6 @@ setup(
         "console_scripts": [
             "planner_node = bimacppo_planner.ros.planner_node:main",
             "bimacppo-graph = bimacppo_planner.ros.graph:main",
-            "bimacppo-train = bimacppo_planner.cli:train_main",
-            "bimacppo-evaluate = bimacppo_planner.cli:evaluate_main",
-            "bimacppo-report = bimacppo_planner.report:main",
-            "bimacppo-experiments = bimacppo_planner.experiments:main",
-            "bimacppo-imitate = bimacppo_planner.imitation:main",
         ],
     },
 )

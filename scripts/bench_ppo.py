@@ -12,9 +12,9 @@ import time
 import numpy as np
 import torch
 
-from bimacppo_planner.checkpoint import Policy, export_policy
-from bimacppo_planner.ppo import PPO
-from bimacppo_planner.ppo_config import load_config
+from bimacppo_learning.checkpoint import Policy, export_policy
+from bimacppo_learning.ppo import PPO
+from bimacppo_learning.ppo_config import load_config
 
 NVEC = (5, 5, 3)
 

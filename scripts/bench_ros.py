@@ -208,8 +208,8 @@ def pick_policy(arg, tmp):
     shipped = shipped_policy_path()
     if shipped.is_file():
         return str(shipped), "shipped policy"
-    from bimacppo_planner.checkpoint import export_policy
-    from bimacppo_planner.ppo import PPO
+    from bimacppo_learning.checkpoint import export_policy
+    from bimacppo_learning.ppo import PPO
     path = os.path.join(tmp, "untrained.pt")
     export_policy(PPO(16, (5, 5, 3), seed=0), path)
     return path, "untrained PPO(seed 0) export (no shipped policy yet)"

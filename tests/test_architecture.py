@@ -1,4 +1,5 @@
-"""Architecture rules from DESIGN §2: core code never imports rclpy.
+"""Architecture rules (docs/architecture.md): core code never imports rclpy; the deployed
+planner never imports the training stack.
 
 Adapters live in each package's ``ros/`` subpackage; everything else is core and
 must import (and be unit-testable) without a ROS installation.
@@ -11,10 +12,13 @@ import sys
 from conftest import REPO
 
 PACKAGES = ["bimacppo_sim", "bimacppo_mpc", "bimacppo_curriculum", "bimacppo_planner"]
+# plain Python (no ROS package), never imported by the deployed packages
+LEARNING = "bimacppo_learning"
+TRAINING_ONLY = ("bimacppo_learning", "gymnasium", "tensorboard", "ray", "rliable")  # torch itself loads torch.optim
 
 
 def _core_modules():
-    for pkg in PACKAGES:
+    for pkg in [*PACKAGES, LEARNING]:
         root = REPO / pkg / pkg
         for path in sorted(root.rglob("*.py")):
             rel = path.relative_to(root)
@@ -68,3 +72,35 @@ def test_every_package_is_an_ament_python_package():
         assert (root / "resource" / pkg).exists()
         assert (root / "setup.cfg").read_text().count(f"$base/lib/{pkg}") == 2
         assert (REPO / "ros2_ws" / "src" / pkg).resolve() == root.resolve()
+
+
+def test_deployed_planner_loads_no_training_code():
+    """The planner node's imports (policy loading, observation, decoding) pull in nothing of
+    the training stack: deploying the planner must not need gymnasium, an optimiser or the trainer."""
+    code = (
+        "import sys, numpy as np\n"
+        "import bimacppo_planner.ros.planner_node\n"
+        "from bimacppo_planner.agent import HighLevelPlanner\n"
+        "hp = HighLevelPlanner.load(None)\n"
+        "hp.reset(np.array([1.75, -40.0, 5.0, 1.5708]), np.array([-23.0, 5.25, 3.1416]))\n"
+        "hp.step(np.array([1.75, -40.0, 5.0, 1.5708]), np.zeros((0, 4)))\n"
+        f"bad = sorted(m for m in sys.modules if m.startswith({TRAINING_ONLY!r}))\n"
+        "print('BAD', bad)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "BAD []", out.stdout
+
+
+def test_no_package_imports_the_learning_stack_or_another_packages_node():
+    offenders = []
+    for pkg in PACKAGES:
+        for path in sorted((REPO / pkg / pkg).rglob("*.py")):
+            tree = ast.parse(path.read_text(), filename=str(path))
+            for node in ast.walk(tree):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                    [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+                for n in names:
+                    if n.split(".")[0] == LEARNING:
+                        offenders.append(f"{path.relative_to(REPO)} imports {n}")
+    assert offenders == []

@@ -51,8 +51,8 @@ def summary(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def policy_file(tmp_path_factory):
-    from bimacppo_planner.checkpoint import export_policy
-    from bimacppo_planner.ppo import PPO
+    from bimacppo_learning.checkpoint import export_policy
+    from bimacppo_learning.ppo import PPO
     path = tmp_path_factory.mktemp("policy") / "policy.pt"
     export_policy(PPO(16, (5, 5, 3), seed=1), path)
     return path
@@ -510,8 +510,8 @@ def test_world_restarted_in_realtime(realtime):
 
 # ----------------------------------------------------------------------------- start-up
 def _startup_cases(tmp, policy_file):
-    from bimacppo_planner.checkpoint import export_policy
-    from bimacppo_planner.ppo import PPO
+    from bimacppo_learning.checkpoint import export_policy
+    from bimacppo_learning.ppo import PPO
     trunc = tmp / "trunc.pt"
     trunc.write_bytes(pathlib.Path(policy_file).read_bytes()[:200])
     garbage = tmp / "garbage.pt"

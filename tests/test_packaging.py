@@ -13,8 +13,10 @@ EXECUTABLES = {
     "bimacppo_sim": ["world_node", "mcap_recorder", "mcap_player", "bimacppo-sim"],
     "bimacppo_mpc": ["controller_node"],
     "bimacppo_curriculum": ["curriculum_node"],
-    "bimacppo_planner": ["planner_node", "bimacppo-graph", "bimacppo-train", "bimacppo-evaluate"],
+    "bimacppo_planner": ["planner_node", "bimacppo-graph"],
 }
+# the training stack is a plain Python package, not part of the deployed ROS workspace
+TRAINING_EXECUTABLES = ["bimacppo-train", "bimacppo-evaluate", "bimacppo-report", "bimacppo-experiments"]
 
 
 @pytest.fixture(scope="module")
@@ -41,6 +43,9 @@ def test_colcon_build_installs_every_package_and_executable(colcon_install):
         for exe in exes:
             path = colcon_install / pkg / "lib" / pkg / exe
             assert path.is_file() and os.access(path, os.X_OK), f"{path} missing: ros2 run {pkg} {exe} would fail"
+    for exe in TRAINING_EXECUTABLES:
+        assert not list(colcon_install.glob(f"*/lib/*/{exe}")), f"{exe} installed with the deployed packages"
+    assert not (colcon_install / "bimacppo_learning").exists()
     # package data (maps, configs) travels with the build
     site = next((colcon_install / "bimacppo_sim" / "lib").glob("python3*/site-packages"))
     assert (site / "bimacppo_sim" / "maps" / "dual_lane_4way.yaml").is_file()

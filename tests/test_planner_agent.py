@@ -3,10 +3,10 @@ import numpy as np
 import pytest
 
 from bimacppo_planner.agent import HighLevelPlanner, load_policy, route_for
-from bimacppo_planner.checkpoint import CheckpointError, export_policy
+from bimacppo_learning.checkpoint import CheckpointError, export_policy
 from bimacppo_planner.decision import EnvConfig
-from bimacppo_planner.env import IntersectionEnv
-from bimacppo_planner.ppo import PPO
+from bimacppo_learning.env import IntersectionEnv
+from bimacppo_learning.ppo import PPO
 
 
 @pytest.fixture(scope="module")

@@ -30,8 +30,8 @@ WORLD_TOPICS = (I.TOPIC_CLOCK, I.TOPIC_EGO_ODOM, I.TOPIC_OBJECTS, I.TOPIC_GOAL, 
 
 @pytest.fixture(scope="module")
 def policy_file(tmp_path_factory):
-    from bimacppo_planner.checkpoint import export_policy
-    from bimacppo_planner.ppo import PPO
+    from bimacppo_learning.checkpoint import export_policy
+    from bimacppo_learning.ppo import PPO
     path = tmp_path_factory.mktemp("policy") / "policy.pt"
     export_policy(PPO(16, (5, 5, 3), seed=POLICY_SEED), path)
     return path
@@ -43,10 +43,10 @@ def policy_file_extended(tmp_path_factory):
     one decision every 3 ticks): the planner node must observe and hold decisions as training did."""
     from importlib import resources
 
-    from bimacppo_planner.checkpoint import export_policy
+    from bimacppo_learning.checkpoint import export_policy
     from bimacppo_planner.decision import EnvConfig
-    from bimacppo_planner.ppo import PPO
-    cfg = EnvConfig.load(resources.files("bimacppo_planner").joinpath("config/env_extended.yaml"))
+    from bimacppo_learning.ppo import PPO
+    cfg = EnvConfig.load(resources.files("bimacppo_learning").joinpath("config/env_extended.yaml"))
     assert cfg.action.decision_every == 3 and cfg.observation.sv_frame == "ego"
     path = tmp_path_factory.mktemp("policy_ext") / "policy.pt"
     export_policy(PPO(cfg.obs_dim, cfg.nvec, seed=POLICY_SEED), path, meta={"env_config": cfg.to_dict()})

@@ -109,8 +109,8 @@ class ScriptedWorld(Node):
 
 @pytest.fixture(scope="module")
 def policy_file(tmp_path_factory):
-    from bimacppo_planner.checkpoint import export_policy
-    from bimacppo_planner.ppo import PPO
+    from bimacppo_learning.checkpoint import export_policy
+    from bimacppo_learning.ppo import PPO
     path = tmp_path_factory.mktemp("policy") / "policy.pt"
     export_policy(PPO(16, (5, 5, 3), seed=POLICY_SEED), path)
     return path
@@ -169,7 +169,7 @@ def test_planner_node_return_is_the_environment_return(policy_file, scenario):
     """``planner_node.episode_return`` (what /planner/episode_result carries) summed over an
     ``IntersectionEnv`` episode driven by the same policy equals the env's own return."""
     from bimacppo_planner.agent import load_policy
-    from bimacppo_planner.env import IntersectionEnv
+    from bimacppo_learning.env import IntersectionEnv
     from bimacppo_planner.ros.planner_node import episode_return
     env = IntersectionEnv(MAP)
     policy = load_policy(policy_file)

@@ -15,7 +15,7 @@ import numpy as np
 from bimacppo_sim import RoadMap, WorldConfig, load_map
 from bimacppo_sim.world import reference_route
 
-from .checkpoint import CheckpointError, Policy
+from .policy import CheckpointError, Policy
 from .decision import EnvConfig, WaypointTracker, decode_action, observe
 
 SHIPPED_POLICY = "policies/bimacppo_dual_lane.pt"
@@ -27,29 +27,9 @@ def shipped_policy_path() -> Path:
 
 
 def load_policy(path: str | Path | None = None) -> Policy:
-    """A policy export or a full training checkpoint; None means the shipped policy."""
-    path = shipped_policy_path() if path in (None, "", "shipped") else Path(path)
-    if not path.is_file():
-        raise CheckpointError(path, "no such file")
-    try:
-        return Policy.load(path)
-    except CheckpointError as first:
-        # a full training checkpoint also carries the actor: accept it for convenience
-        from .checkpoint import export_policy
-        from .trainer import load_agent
-
-        try:
-            agent = load_agent(path)
-        except Exception:
-            raise first from None
-        import io
-
-        import torch
-
-        buf = io.BytesIO()
-        export_policy(agent, buf)
-        buf.seek(0)
-        return Policy(torch.load(buf, weights_only=True), path)
+    """A policy export or a full training checkpoint; None (or "" / "shipped") means the shipped policy."""
+    path = shipped_policy_path() if path is None or str(path) in ("", "shipped") else Path(path)
+    return Policy.load(path)
 
 
 def env_config_of(policy: Policy) -> EnvConfig:

@@ -55,7 +55,7 @@ def make_planner(spec: str, policy_path: str, map_id: str):
     exits with one ``error:`` line (runtime.run_single) instead of a traceback.
     """
     cls = load_class(spec)
-    from bimacppo_planner.checkpoint import CheckpointError
+    from bimacppo_planner.policy import CheckpointError
     if policy_path:
         param_file(policy_path, "policy_path", "planner")
     try:

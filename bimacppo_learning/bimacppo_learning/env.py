@@ -15,7 +15,7 @@ from gymnasium import spaces
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_sim import TASKS, Scenario, World, load_map
 
-from .decision import EnvConfig, WaypointTracker, decode_action, observe, step_reward
+from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, observe, step_reward
 
 MAP_IDS = {
     "bimacppo/DualLaneIntersection-v0": "dual_lane_4way",
@@ -172,5 +172,5 @@ def register_envs() -> None:
     """Register the three scenario ids with Gymnasium (idempotent)."""
     for env_id, map_id in MAP_IDS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point="bimacppo_planner.env:IntersectionEnv",
+            gym.register(id=env_id, entry_point="bimacppo_learning.env:IntersectionEnv",
                          kwargs={"map_id": map_id})

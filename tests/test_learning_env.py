@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from bimacppo_planner.env import MAP_IDS, IntersectionEnv, register_envs
+from bimacppo_learning.env import MAP_IDS, IntersectionEnv, register_envs
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from bimacppo_planner.ppo import PPO, MultiCategorical, RunningMeanStd, clipped_surrogate
-from bimacppo_planner.ppo_config import PPOConfig, TrainConfig, load_config
-from bimacppo_planner.rollout import RolloutBuffer, compute_gae
+from bimacppo_learning.ppo import PPO, MultiCategorical, RunningMeanStd, clipped_surrogate
+from bimacppo_learning.ppo_config import PPOConfig, TrainConfig, load_config
+from bimacppo_learning.rollout import RolloutBuffer, compute_gae
 
 NVEC = (5, 5, 3)
 

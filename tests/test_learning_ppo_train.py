@@ -7,10 +7,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from bimacppo_planner.ppo_config import load_config
-from bimacppo_planner.rollout import make_vector_env, reset_each, reset_one
-from bimacppo_planner.toy_env import ToyEnvConfig, ToyIntersectionEnv, ToyScheduler
-from bimacppo_planner.trainer import Trainer
+from bimacppo_learning.ppo_config import load_config
+from bimacppo_learning.rollout import make_vector_env, reset_each, reset_one
+from toy_env import ToyEnvConfig, ToyIntersectionEnv, ToyScheduler
+from bimacppo_learning.trainer import Trainer
 
 TOY_PPO = {"minibatch_size": 64}    # 256-sample rollouts -> 4 minibatches
 

@@ -45,7 +45,7 @@ class CellResult:
 
 def _run_cell(args):
     policy_path, map_id, task, n_sv, episodes, mpc_solver = args
-    from .agent import env_config_of, load_policy
+    from bimacppo_planner.agent import env_config_of, load_policy
     from .env import IntersectionEnv
 
     policy = load_policy(policy_path)

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from bimacppo_planner.checkpoint import (CheckpointError, Policy, export_policy, list_checkpoints,
+from bimacppo_learning.checkpoint import (CheckpointError, Policy, export_policy, list_checkpoints,
                                          load_checkpoint, save_checkpoint)
-from bimacppo_planner.ppo import PPO
-from bimacppo_planner.ppo_config import PPOConfig, load_config
-from bimacppo_planner.toy_env import ToyIntersectionEnv, ToyScheduler
-from bimacppo_planner.trainer import Trainer, load_agent
+from bimacppo_learning.ppo import PPO
+from bimacppo_learning.ppo_config import PPOConfig, load_config
+from toy_env import ToyIntersectionEnv, ToyScheduler
+from bimacppo_learning.trainer import Trainer, load_agent
 
 NVEC = (5, 5, 3)
 
@@ -70,7 +70,7 @@ def test_periodic_checkpoints_are_written_and_pruned(tmp_path):
     (lambda p: p.write_bytes(b""), "empty"),
     (lambda p: p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2]), "corrupt or truncated"),
     (lambda p: p.write_bytes(b"\x00garbage" * 100), "corrupt or truncated"),
-    (lambda p: p.unlink(), "does not exist"),
+    (lambda p: p.unlink(), "no such file"),
     (lambda p: torch.save({"hello": 1}, p), "format"),
     (lambda p: torch.save([1, 2, 3], p), "expected a dict"),
 ])
@@ -103,7 +103,7 @@ def test_wrong_shape_checkpoint_is_reported(trained, tmp_path):
     # an agent for another observation size does not accept the file either
     ck2 = load_checkpoint(trained[0].last_checkpoint)
     other = PPO(7, NVEC, PPOConfig(minibatch_size=32, epochs=2))
-    from bimacppo_planner.checkpoint import restore_agent
+    from bimacppo_learning.checkpoint import restore_agent
     with pytest.raises(CheckpointError, match="obs_dim"):
         restore_agent(other, ck2["agent"], trained[0].last_checkpoint)
 
@@ -188,5 +188,11 @@ def test_damaged_policy_file_raises(trained, tmp_path):
     (tmp_path / "trunc.pt").write_bytes(path.read_bytes()[:100])
     with pytest.raises(CheckpointError, match="trunc.pt"):
         Policy.load(tmp_path / "trunc.pt")
-    with pytest.raises(CheckpointError, match="format"):
-        Policy.load(tr.last_checkpoint)
+    blob["format"] = "someone-elses-format"
+    torch.save(blob, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="foreign.pt.*format"):
+        Policy.load(tmp_path / "foreign.pt")
+    # a full training checkpoint carries the actor: it loads and acts like the export
+    from_ckpt, exported = Policy.load(tr.last_checkpoint), Policy.load(path)
+    obs = np.linspace(-1.0, 1.0, exported.obs_dim)
+    assert np.array_equal(from_ckpt.act(obs), exported.act(obs))

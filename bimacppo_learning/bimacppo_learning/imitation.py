@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 import yaml
 
-from .decision import ConfigError, EnvConfig
+from bimacppo_planner.decision import ConfigError, EnvConfig
 
 log = logging.getLogger(__name__)
 DEFAULT_CONFIG = Path(__file__).parent / "config" / "imitation.yaml"

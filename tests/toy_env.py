@@ -212,13 +212,13 @@ def evaluate_toy(agent, n_per_sv: int = 100, seed: int = 10_000) -> dict[int, di
 
 
 def _main() -> None:
-    """Train PPO on the toy env: a smoke test of the whole loop (python -m bimacppo_planner.toy_env)."""
+    """Train PPO on the toy env: a smoke test of the whole loop (python tests/toy_env.py)."""
     import argparse
     import json
     import time
 
-    from .ppo_config import load_config
-    from .trainer import Trainer
+    from bimacppo_learning.ppo_config import load_config
+    from bimacppo_learning.trainer import Trainer
 
     ap = argparse.ArgumentParser(description=_main.__doc__)
     ap.add_argument("--episodes", type=int, default=3500)

@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from bimacppo_planner import experiments as ex
-from bimacppo_planner.evaluate import CellResult, write_outputs
+from bimacppo_learning import experiments as ex
+from bimacppo_learning.evaluate import CellResult, write_outputs
 
 PPO_TINY = """
 ppo:
@@ -262,7 +262,7 @@ def test_mean_counts_for_table1():
 
 @pytest.fixture(scope="module")
 def lane_env():
-    from bimacppo_planner.env import IntersectionEnv
+    from bimacppo_learning.env import IntersectionEnv
 
     return IntersectionEnv(map_id="three_lane_straight")
 

@@ -147,7 +147,7 @@ class ExperimentConfig:
     evaluation: EvalSection
     overtake: OvertakeSection
     report: ReportSection
-    source: str = "bimacppo_planner/config/experiments.yaml (packaged)"
+    source: str = "bimacppo_learning/config/experiments.yaml (packaged)"
 
     # -- layout: one place decides where everything lives ---------------------------------
     def run_dir(self, method: str, seed: int, map_id: str | None = None) -> Path:
@@ -259,7 +259,7 @@ def load_experiment_config(path: str | os.PathLike | None = None, overrides: Map
             src = origin.get(f"train.{name}", origin.get("train", str(CONFIG_PATH)))
             raise ExperimentError(f"{src}: key 'train.{name}': no such file {f!r} (paths are relative to "
                                   f"the working directory, {os.getcwd()})")
-    label = "bimacppo_planner/config/experiments.yaml (packaged)"
+    label = "bimacppo_learning/config/experiments.yaml (packaged)"
     return ExperimentConfig(**kw, source=f"{path} over {label}" if path is not None else label)
 
 
@@ -396,7 +396,7 @@ def train(cfg: ExperimentConfig, only=None, seeds=None, echo: Callable[[str], No
         with log.open("a") as fh:
             fh.write(f"$ bimacppo-train {' '.join(argv)}\n")
             fh.flush()
-            proc = subprocess.Popen([sys.executable, "-m", "bimacppo_planner.cli", *argv], stdout=fh,
+            proc = subprocess.Popen([sys.executable, "-m", "bimacppo_learning.cli", *argv], stdout=fh,
                                     stderr=subprocess.STDOUT)
             try:
                 while proc.poll() is None:
@@ -609,7 +609,7 @@ def best_source_seed(cfg: ExperimentConfig) -> tuple[int, str]:
 
 def overtake(cfg: ExperimentConfig, echo: Callable[[str], None] = print) -> dict:
     """Fine-tune the best source seed on the overtaking road, then the fixed-seed tests."""
-    from .agent import env_config_of, load_policy
+    from bimacppo_planner.agent import env_config_of, load_policy
     from .checkpoint import latest_checkpoint
 
     o = cfg.overtake
@@ -665,7 +665,7 @@ def overtake_test(cfg: ExperimentConfig, policy_path: Path) -> dict:
     number of slow SVs drawn per seed (draw_n_slow)."""
     from tqdm.auto import tqdm
 
-    from .agent import env_config_of, load_policy
+    from bimacppo_planner.agent import env_config_of, load_policy
     from .evaluate import eval_seed
 
     o = cfg.overtake
@@ -817,7 +817,7 @@ def report(cfg: ExperimentConfig, config_arg: str | None = None) -> dict:
            f"Generated from the runs under `{cfg.runs_dir}` with the config `{cfg.source}`: "
            f"{len(cfg.methods)} methods x seeds {list(cfg.seeds)}, {cfg.episodes} training episodes each on "
            f"`{cfg.train_map}`, evaluation {cfg.evaluation.episodes} episodes per task x N_sv cell on the fixed "
-           "seeds of `bimacppo_planner.evaluate.eval_seed` (shared by every method and by the scripted drivers). "
+           "seeds of `bimacppo_learning.evaluate.eval_seed` (shared by every method and by the scripted drivers). "
            "Numbers below are read from those files; nothing is typed in. Cells are S / C / TO in percent, "
            "mean±std (sample std, ddof=1) over the training seeds that finished and were evaluated.", "",
            "## Runs", "", "| method | " + " | ".join(f"seed {s}" for s in cfg.seeds) + " |",

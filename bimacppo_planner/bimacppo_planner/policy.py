@@ -1,17 +1,18 @@
-"""Training checkpoints, the policy-only export, and ``Policy`` for deployment.
+"""Policy files for deployment: the on-disk formats, ``CheckpointError`` and ``Policy``.
 
-Every file is read with ``torch.load(..., weights_only=True)`` (no arbitrary unpickling), so
-payloads hold only tensors and plain Python types; the scheduler state travels as JSON text.
-Writes are atomic (temp file in the same directory, fsync, ``os.replace``): a crash mid-write
-leaves the previous file intact.  Any unreadable, truncated, foreign or mis-shaped file raises
-``CheckpointError`` naming the file and the problem.
+The deployed planner needs only this module (numpy inference, ``torch.load`` to read), never the
+training stack. Every file is read with ``torch.load(..., weights_only=True)`` (no arbitrary
+unpickling), so payloads hold only tensors and plain Python types. Any unreadable, truncated,
+foreign or mis-shaped file raises ``CheckpointError`` naming the file and the problem.
+
+Two formats are read: the policy export (actor + observation normaliser + metadata, what
+training writes as ``policy.pt``) and, for convenience, a full training checkpoint, whose actor
+and normaliser are taken out of the agent state.
 """
 from __future__ import annotations
 
 import os
 import pathlib
-import re
-import tempfile
 from typing import Any, Mapping
 
 import numpy as np
@@ -20,43 +21,29 @@ import torch
 CHECKPOINT_FORMAT = "bimacppo-ppo-checkpoint"
 POLICY_FORMAT = "bimacppo-ppo-policy"
 FORMAT_VERSION = 1
-CKPT_PATTERN = re.compile(r"^ckpt_ep(\d+)\.pt$")
 
-_CKPT_KEYS = ("format", "version", "agent", "config", "scheduler_state", "counters", "rng")
-_AGENT_KEYS = ("obs_dim", "nvec", "actor", "critic", "actor_opt", "critic_opt", "obs_rms", "gen")
-_POLICY_KEYS = ("format", "version", "actor", "obs_rms", "obs_dim", "nvec", "hidden_sizes",
-                "activation", "obs_norm", "config_hash", "meta")
+POLICY_KEYS = ("format", "version", "actor", "obs_rms", "obs_dim", "nvec", "hidden_sizes",
+               "activation", "obs_norm", "config_hash", "meta")
 
 
 class CheckpointError(Exception):
     """A checkpoint or policy file that cannot be used; the message names the file."""
 
-    def __init__(self, path: str | os.PathLike, problem: str):
+    def __init__(self, path: str | os.PathLike, problem: str = "cannot be used"):
         self.path = str(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
-
-def atomic_torch_save(obj: Any, path: str | os.PathLike) -> None:
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    def __reduce__(self):
+        # crosses process boundaries (evaluation workers) with both arguments intact
+        return (type(self), (self.path, self.problem))
 
 
-def _read(path: str | os.PathLike) -> Any:
+def read_torch_file(path: str | os.PathLike) -> Any:
+    """``torch.load(weights_only=True)`` of ``path``; any failure -> CheckpointError."""
     path = pathlib.Path(path)
     if not path.is_file():
-        raise CheckpointError(path, "file does not exist")
+        raise CheckpointError(path, "is a directory, not a file" if path.is_dir() else "no such file")
     if path.stat().st_size == 0:
         raise CheckpointError(path, "file is empty (truncated write?)")
     try:
@@ -67,7 +54,8 @@ def _read(path: str | os.PathLike) -> Any:
                                     f"{type(exc).__name__}: {msg[:200]}") from None
 
 
-def _require(path, d: Any, keys, what: str, fmt: str) -> None:
+def require_keys(path, d: Any, keys, what: str, fmt: str) -> None:
+    """``d`` is a dict of format ``fmt`` holding ``keys``, else CheckpointError."""
     if not isinstance(d, Mapping):
         raise CheckpointError(path, f"{what} is a {type(d).__name__}, expected a dict")
     if d.get("format", fmt) != fmt:
@@ -77,68 +65,18 @@ def _require(path, d: Any, keys, what: str, fmt: str) -> None:
         raise CheckpointError(path, f"{what} lacks key(s) {missing}")
 
 
-def save_checkpoint(path: str | os.PathLike, payload: Mapping[str, Any]) -> None:
-    """Atomically write a training checkpoint (payload built by the Trainer)."""
-    _require(path, payload, _CKPT_KEYS, "checkpoint payload", CHECKPOINT_FORMAT)
-    atomic_torch_save(dict(payload), path)
-
-
-def load_checkpoint(path: str | os.PathLike) -> dict:
-    """Read and structurally validate a training checkpoint (shapes are checked on restore)."""
-    d = _read(path)
-    _require(path, d, _CKPT_KEYS, "checkpoint", CHECKPOINT_FORMAT)
-    if d["version"] != FORMAT_VERSION:
-        raise CheckpointError(path, f"format version {d['version']!r}, this code reads {FORMAT_VERSION}")
-    _require(path, d["agent"], _AGENT_KEYS, "checkpoint['agent']", CHECKPOINT_FORMAT)
-    return d
-
-
-def restore_agent(agent, state: Mapping[str, Any], path: str | os.PathLike) -> None:
-    """Load ``state`` into ``agent``; a dimension or tensor-shape mismatch -> CheckpointError."""
+def policy_payload_of_checkpoint(d: Mapping[str, Any], path: str | os.PathLike) -> dict:
+    """The policy export held inside a training checkpoint (its actor, normaliser, PPO sizes)."""
     try:
-        agent.load_state_dict(state)
-    except (ValueError, KeyError, RuntimeError, TypeError) as exc:
-        raise CheckpointError(path, f"does not fit this agent: {exc}") from None
-
-
-def checkpoint_path(directory: str | os.PathLike, episodes: int) -> pathlib.Path:
-    return pathlib.Path(directory) / f"ckpt_ep{episodes:08d}.pt"
-
-
-def list_checkpoints(directory: str | os.PathLike) -> list[pathlib.Path]:
-    """Checkpoint files in ``directory``, oldest (fewest episodes) first."""
-    d = pathlib.Path(directory)
-    if not d.is_dir():
-        return []
-    found = [(int(m.group(1)), p) for p in d.iterdir() if (m := CKPT_PATTERN.match(p.name))]
-    return [p for _, p in sorted(found)]
-
-
-def latest_checkpoint(directory: str | os.PathLike) -> pathlib.Path | None:
-    cks = list_checkpoints(directory)
-    return cks[-1] if cks else None
-
-
-# ------------------------------------------------------------------ deployment
-def export_policy(agent, path: str | os.PathLike, meta: Mapping[str, Any] | None = None) -> pathlib.Path:
-    """Write the actor + observation normaliser + metadata: all a planner node needs to act."""
-    from .ppo_config import config_hash
-
-    payload = {
-        "format": POLICY_FORMAT,
-        "version": FORMAT_VERSION,
-        "actor": {k: v.detach().clone() for k, v in agent.actor.state_dict().items()},
-        "obs_rms": agent.obs_rms.state_dict(),
-        "obs_dim": int(agent.obs_dim),
-        "nvec": [int(n) for n in agent.nvec],
-        "hidden_sizes": [int(h) for h in agent.cfg.hidden_sizes],
-        "activation": agent.cfg.activation,
-        "obs_norm": bool(agent.cfg.obs_norm),
-        "config_hash": config_hash(agent.cfg),
-        "meta": dict(meta or {}),
-    }
-    atomic_torch_save(payload, path)
-    return pathlib.Path(path)
+        agent, ppo = d["agent"], d["config"]["ppo"]
+        return {"format": POLICY_FORMAT, "version": d["version"], "actor": agent["actor"],
+                "obs_rms": agent["obs_rms"], "obs_dim": int(agent["obs_dim"]),
+                "nvec": [int(n) for n in agent["nvec"]],
+                "hidden_sizes": [int(h) for h in ppo["hidden_sizes"]],
+                "activation": str(ppo["activation"]), "obs_norm": bool(ppo["obs_norm"]),
+                "config_hash": "", "meta": dict(d.get("meta") or {})}
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(path, f"training checkpoint lacks the actor: {type(exc).__name__}: {exc}") from None
 
 
 class Policy:
@@ -146,7 +84,7 @@ class Policy:
     overhead), bit-for-bit the same argmax as the training actor."""
 
     def __init__(self, payload: Mapping[str, Any], path: str | os.PathLike = "<memory>"):
-        _require(path, payload, _POLICY_KEYS, "policy file", POLICY_FORMAT)
+        require_keys(path, payload, POLICY_KEYS, "policy file", POLICY_FORMAT)
         if payload["version"] != FORMAT_VERSION:
             raise CheckpointError(path, f"format version {payload['version']!r}, this code reads {FORMAT_VERSION}")
         self.path = str(path)
@@ -189,7 +127,11 @@ class Policy:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Policy":
-        return cls(_read(path), path)
+        """A policy export or a full training checkpoint (its actor and normaliser)."""
+        d = read_torch_file(path)
+        if isinstance(d, Mapping) and d.get("format") == CHECKPOINT_FORMAT:
+            d = policy_payload_of_checkpoint(d, path)
+        return cls(d, path)
 
     def logits(self, obs: np.ndarray) -> list[np.ndarray]:
         x = np.asarray(obs, np.float64)

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from bimacppo_planner.cli import evaluate_main, train_main
-from bimacppo_planner.evaluate import EVAL_SEED_BASE, eval_seed
+from bimacppo_learning.cli import evaluate_main, train_main
+from bimacppo_learning.evaluate import EVAL_SEED_BASE, eval_seed
 
 SMALL = """
 ppo:
@@ -94,7 +94,7 @@ def test_evaluation_seeds_are_fixed_and_distinct():
 
 
 def test_report_draws_figures_and_table_i(trained, tmp_path):
-    from bimacppo_planner.report import main as report_main
+    from bimacppo_learning.report import main as report_main
 
     _, _, run = trained
     out = tmp_path / "img" / "run"
@@ -108,7 +108,7 @@ def test_report_draws_figures_and_table_i(trained, tmp_path):
 
 
 def test_report_rejects_a_directory_without_history(tmp_path, capsys):
-    from bimacppo_planner.report import main as report_main
+    from bimacppo_learning.report import main as report_main
 
     assert report_main([str(tmp_path), "--out", str(tmp_path / "x")]) == 2
     assert "history.jsonl" in capsys.readouterr().err

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from bimacppo_curriculum import SCHEDULERS, make_scheduler
 
-from .decision import ConfigError, EnvConfig
+from bimacppo_planner.decision import ConfigError, EnvConfig
 
 CURRICULA = ("bimab", "fixed", "random", "manual", "rd")
 MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
@@ -50,7 +50,7 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--num-envs", type=int, default=None, help="parallel environments (default: config, 2)")
     p.add_argument("--vector", choices=("async", "sync"), default=None,
                    help="async = one subprocess per env (uses all cores); sync = in-process, exactly reproducible")
-    p.add_argument("--ppo-config", type=Path, default=None, help="YAML overriding bimacppo_planner/config/ppo.yaml")
+    p.add_argument("--ppo-config", type=Path, default=None, help="YAML overriding bimacppo_learning/config/ppo.yaml")
     p.add_argument("--env-config", type=Path, default=None, help="YAML replacing bimacppo_planner/config/env.yaml")
     p.add_argument("--curriculum-config", default=None,
                    help="YAML for the scheduler (default: the packaged one for that curriculum)")
@@ -151,7 +151,7 @@ def evaluate_main(argv=None) -> int:
     args = _eval_parser().parse_args(argv)
     from bimacppo_sim import TASKS
 
-    from .agent import load_policy
+    from bimacppo_planner.agent import load_policy
     from .checkpoint import CheckpointError
     from .evaluate import evaluate, to_markdown, write_outputs
 

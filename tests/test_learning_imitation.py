@@ -6,13 +6,13 @@ import pytest
 
 from bimacppo_planner.agent import load_policy
 from bimacppo_planner.decision import ConfigError, EnvConfig
-from bimacppo_planner.env import IntersectionEnv
-from bimacppo_planner.evaluate import eval_seed
-from bimacppo_planner.imitation import CloneConfig, ImitationConfig, YieldTeacher, behaviour_clone, collect, main
-from bimacppo_planner.ppo import PPO
-from bimacppo_planner.trainer import load_agent
+from bimacppo_learning.env import IntersectionEnv
+from bimacppo_learning.evaluate import eval_seed
+from bimacppo_learning.imitation import CloneConfig, ImitationConfig, YieldTeacher, behaviour_clone, collect, main
+from bimacppo_learning.ppo import PPO
+from bimacppo_learning.trainer import load_agent
 
-EXT = EnvConfig.load(__import__("pathlib").Path(__import__("bimacppo_planner").__file__).parent
+EXT = EnvConfig.load(__import__("pathlib").Path(__import__("bimacppo_learning").__file__).parent
                      / "config" / "env_extended.yaml")
 
 

@@ -1,0 +1,107 @@
+"""Training checkpoints and the policy-only export (read back by ``bimacppo_planner.policy``).
+
+Every file is read with ``torch.load(..., weights_only=True)`` (no arbitrary unpickling), so
+payloads hold only tensors and plain Python types; the scheduler state travels as JSON text.
+Writes are atomic (temp file in the same directory, fsync, ``os.replace``): a crash mid-write
+leaves the previous file intact.  Any unreadable, truncated, foreign or mis-shaped file raises
+``CheckpointError`` naming the file and the problem.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import re
+import tempfile
+from typing import Any, Mapping
+
+import torch
+
+from bimacppo_planner.policy import (CHECKPOINT_FORMAT, FORMAT_VERSION, POLICY_FORMAT,  # noqa: F401
+                                     CheckpointError, Policy, read_torch_file, require_keys)
+
+CKPT_PATTERN = re.compile(r"^ckpt_ep(\d+)\.pt$")
+
+_CKPT_KEYS = ("format", "version", "agent", "config", "scheduler_state", "counters", "rng")
+_AGENT_KEYS = ("obs_dim", "nvec", "actor", "critic", "actor_opt", "critic_opt", "obs_rms", "gen")
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike) -> None:
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save_checkpoint(path: str | os.PathLike, payload: Mapping[str, Any]) -> None:
+    """Atomically write a training checkpoint (payload built by the Trainer)."""
+    require_keys(path, payload, _CKPT_KEYS, "checkpoint payload", CHECKPOINT_FORMAT)
+    atomic_torch_save(dict(payload), path)
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """Read and structurally validate a training checkpoint (shapes are checked on restore)."""
+    d = read_torch_file(path)
+    require_keys(path, d, _CKPT_KEYS, "checkpoint", CHECKPOINT_FORMAT)
+    if d["version"] != FORMAT_VERSION:
+        raise CheckpointError(path, f"format version {d['version']!r}, this code reads {FORMAT_VERSION}")
+    require_keys(path, d["agent"], _AGENT_KEYS, "checkpoint['agent']", CHECKPOINT_FORMAT)
+    return d
+
+
+def restore_agent(agent, state: Mapping[str, Any], path: str | os.PathLike) -> None:
+    """Load ``state`` into ``agent``; a dimension or tensor-shape mismatch -> CheckpointError."""
+    try:
+        agent.load_state_dict(state)
+    except (ValueError, KeyError, RuntimeError, TypeError) as exc:
+        raise CheckpointError(path, f"does not fit this agent: {exc}") from None
+
+
+def checkpoint_path(directory: str | os.PathLike, episodes: int) -> pathlib.Path:
+    return pathlib.Path(directory) / f"ckpt_ep{episodes:08d}.pt"
+
+
+def list_checkpoints(directory: str | os.PathLike) -> list[pathlib.Path]:
+    """Checkpoint files in ``directory``, oldest (fewest episodes) first."""
+    d = pathlib.Path(directory)
+    if not d.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in d.iterdir() if (m := CKPT_PATTERN.match(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+def latest_checkpoint(directory: str | os.PathLike) -> pathlib.Path | None:
+    cks = list_checkpoints(directory)
+    return cks[-1] if cks else None
+
+
+# ------------------------------------------------------------------ deployment
+def export_policy(agent, path: str | os.PathLike, meta: Mapping[str, Any] | None = None) -> pathlib.Path:
+    """Write the actor + observation normaliser + metadata: all a planner node needs to act."""
+    from .ppo_config import config_hash
+
+    payload = {
+        "format": POLICY_FORMAT,
+        "version": FORMAT_VERSION,
+        "actor": {k: v.detach().clone() for k, v in agent.actor.state_dict().items()},
+        "obs_rms": agent.obs_rms.state_dict(),
+        "obs_dim": int(agent.obs_dim),
+        "nvec": [int(n) for n in agent.nvec],
+        "hidden_sizes": [int(h) for h in agent.cfg.hidden_sizes],
+        "activation": agent.cfg.activation,
+        "obs_norm": bool(agent.cfg.obs_norm),
+        "config_hash": config_hash(agent.cfg),
+        "meta": dict(meta or {}),
+    }
+    atomic_torch_save(payload, path)
+    return pathlib.Path(path)
+
+
