@@ -106,26 +106,19 @@ def train_main(argv=None) -> int:
     if len(tasks) < 3:
         print(f"bimacppo-train: map {args.map!r} has only the task(s) {tasks}: the curriculum's task "
               "arms all run as that task (its arm statistics are then not meaningful)", file=sys.stderr)
-    trainer = Trainer(env_fn, sched, run_dir, pcfg, tcfg, agent=agent)
+    trainer = Trainer(env_fn, sched, run_dir, pcfg, tcfg, agent=agent,
+                      run_meta=run_meta(env_cfg, args.curriculum, args.map, args.seed, args.mpc))
     res = trainer.train(args.episodes, resume=args.resume)
-    _stamp_policy(run_dir / "policy.pt", env_cfg, args)
     print(f"trained {res.episodes} episodes ({res.env_steps} steps, {res.updates} updates); "
           f"success over the last {tcfg.success_window}: {100 * res.success_rate:.1f}%")
     print(f"policy: {run_dir / 'policy.pt'}   history: {res.history_path}   checkpoint: {res.last_checkpoint}")
     return 0
 
 
-def _stamp_policy(path: Path, env_cfg: EnvConfig, args) -> None:
-    """Record in the exported policy how it was trained (env config, curriculum, map, seed):
+def run_meta(env_cfg: EnvConfig, curriculum: str, map_id: str, seed: int, mpc: str) -> dict:
+    """How a run was trained, as stored in its checkpoints and exported policy (Trainer.run_meta):
     deployment (planner node, evaluation) rebuilds the same observation and decoding from it."""
-    import torch
-
-    from .checkpoint import atomic_torch_save
-
-    payload = torch.load(path, weights_only=True)
-    payload["meta"] = {**payload.get("meta", {}), "env_config": env_cfg.to_dict(), "curriculum": args.curriculum,
-                       "map": args.map, "seed": args.seed, "mpc": args.mpc}
-    atomic_torch_save(payload, path)
+    return {"env_config": env_cfg.to_dict(), "curriculum": curriculum, "map": map_id, "seed": seed, "mpc": mpc}
 
 
 def _eval_parser() -> argparse.ArgumentParser:

@@ -21,7 +21,6 @@ import time
 from collections import Counter
 from dataclasses import dataclass, fields
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Callable, Mapping
 
 import gymnasium as gym
@@ -643,7 +642,7 @@ def _finetune(cfg: ExperimentConfig, ckpt: Path, env_cfg, out: Path) -> None:
     tasks and sets n_slow (docs/experiments.md)."""
     from bimacppo_curriculum import make_scheduler
 
-    from .cli import _stamp_policy
+    from .cli import run_meta
     from .ppo_config import load_config
     from .trainer import Trainer, load_agent
 
@@ -655,9 +654,8 @@ def _finetune(cfg: ExperimentConfig, ckpt: Path, env_cfg, out: Path) -> None:
         "curriculum": o.curriculum, "episodes": o.episodes, "seed": o.seed, "map": o.map, "mpc": t.mpc,
         "init_policy": str(ckpt), "n_slow_max": o.n_slow_max, "env_config": env_cfg.to_dict()}, indent=2))
     env_fn = functools.partial(make_overtake_env, o.map, env_cfg, t.mpc, o.n_slow_max)
-    Trainer(env_fn, sched, out, pcfg, tcfg, agent=load_agent(ckpt)).train(o.episodes, resume=_has_checkpoint(out))
-    _stamp_policy(out / "policy.pt", env_cfg,
-                  SimpleNamespace(curriculum=o.curriculum, map=o.map, seed=o.seed, mpc=t.mpc))
+    Trainer(env_fn, sched, out, pcfg, tcfg, agent=load_agent(ckpt),
+            run_meta=run_meta(env_cfg, o.curriculum, o.map, o.seed, t.mpc)).train(o.episodes, resume=_has_checkpoint(out))
 
 
 def overtake_test(cfg: ExperimentConfig, policy_path: Path) -> dict:

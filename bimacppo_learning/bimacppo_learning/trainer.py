@@ -59,11 +59,15 @@ class Trainer:
         ppo_config, train_config: default to the packaged config/ppo.yaml.
         agent: a prebuilt PPO (else one is built from the env's spaces).
         on_episode: optional callback(record) after each finished episode (hooks for tests/CLI).
+        run_meta: how the run was set up (env config, curriculum, map, seed, ...; JSON-able): saved
+            in every checkpoint under "run" and in the exported policy's metadata, so that
+            deployment rebuilds the same observation and decoding and a resume can check it.
     """
 
     def __init__(self, env_fn: Callable[[], Any], scheduler: Any, run_dir: str | os.PathLike,
                  ppo_config: PPOConfig | None = None, train_config: TrainConfig | None = None,
-                 agent: PPO | None = None, on_episode: Callable[[dict], None] | None = None):
+                 agent: PPO | None = None, on_episode: Callable[[dict], None] | None = None,
+                 run_meta: Mapping[str, Any] | None = None):
         for m in ("sample", "update", "log_dict", "state_dict", "load_state_dict"):
             if not callable(getattr(scheduler, m, None)):
                 raise TypeError(f"scheduler lacks method {m}()")
@@ -78,6 +82,7 @@ class Trainer:
         self.ckpt_dir = self.run_dir / "checkpoints"
         self.history_path = self.run_dir / "history.jsonl"
         self.on_episode = on_episode
+        self.run_meta = dict(run_meta or {})
         self.agent = agent
         self.episodes = 0
         self.env_steps = 0
@@ -117,7 +122,7 @@ class Trainer:
             self._loop(venv, episodes, writer, bar)
             self.save()
             export_policy(self.agent, self.run_dir / "policy.pt",
-                          meta={"episodes": self.episodes, "env_steps": self.env_steps,
+                          meta={**self.run_meta, "episodes": self.episodes, "env_steps": self.env_steps,
                                 "seed": self.tcfg.seed})
             return self._result()
         finally:
@@ -150,6 +155,7 @@ class Trainer:
             "rng": {"episode_rng": self.episode_rng.bit_generator.state,
                     "torch": torch.get_rng_state()},
             "success_window": list(self.window),
+            "run": json.dumps(self.run_meta),
         }
 
     def _start(self, resume: bool) -> None:

@@ -11,6 +11,7 @@ and normaliser are taken out of the agent state.
 """
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 from typing import Any, Mapping
@@ -74,8 +75,8 @@ def policy_payload_of_checkpoint(d: Mapping[str, Any], path: str | os.PathLike) 
                 "nvec": [int(n) for n in agent["nvec"]],
                 "hidden_sizes": [int(h) for h in ppo["hidden_sizes"]],
                 "activation": str(ppo["activation"]), "obs_norm": bool(ppo["obs_norm"]),
-                "config_hash": "", "meta": dict(d.get("meta") or {})}
-    except (KeyError, TypeError, ValueError) as exc:
+                "config_hash": "", "meta": json.loads(d.get("run") or "{}")}
+    except (KeyError, TypeError, ValueError) as exc:  # json.JSONDecodeError is a ValueError
         raise CheckpointError(path, f"training checkpoint lacks the actor: {type(exc).__name__}: {exc}") from None
 
 
