@@ -20,19 +20,13 @@ MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
 
 
 def make_env(map_id: str, env_config: EnvConfig, mpc_solver: str, slow_svs: int = 0):
-    """Picklable env factory for the vector env's worker processes.
+    """The training env's picklable factory (one env when called, ``make_batch(n)`` for the
+    batched vector env). Every curriculum draws all three tasks (its arms); a map with fewer (the
+    straight road has only "straight") folds them onto its own, and ``slow_svs`` > 0 slows up to
+    that many SVs per episode (paper §IV-C overtaking): both rules live in ``batch.py``."""
+    from .vec_env import EnvFactory
 
-    Every curriculum draws all three tasks (its arms); a map with fewer (the straight road
-    has only "straight") folds them onto its own, and ``slow_svs`` > 0 slows up to that many
-    SVs per episode (paper §IV-C overtaking) — both via ``experiments.SlowTraffic``."""
-    from .env import IntersectionEnv
-
-    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver)
-    if slow_svs > 0 or len(env.tasks) < 3:
-        from .experiments import SlowTraffic
-
-        env = SlowTraffic(env, slow_svs)
-    return env
+    return EnvFactory(map_id, env_config, mpc_solver, slow_svs)
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -48,8 +42,9 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", type=Path, default=None, help="default: runs/<curriculum>-s<seed>")
     p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --run-dir")
     p.add_argument("--num-envs", type=int, default=None, help="parallel environments (default: config, 2)")
-    p.add_argument("--vector", choices=("async", "sync"), default=None,
-                   help="async = one subprocess per env (uses all cores); sync = in-process, exactly reproducible")
+    p.add_argument("--vector", choices=("batched", "async", "sync"), default=None,
+                   help="batched = all envs in this process, one NMPC and policy call per step (fastest); "
+                        "async = one subprocess per env; sync = a plain in-process loop")
     p.add_argument("--ppo-config", type=Path, default=None, help="YAML overriding bimacppo_learning/config/ppo.yaml")
     p.add_argument("--env-config", type=Path, default=None, help="YAML replacing bimacppo_planner/config/env.yaml")
     p.add_argument("--curriculum-config", default=None,
@@ -99,7 +94,7 @@ def train_main(argv=None) -> int:
         "mpc": args.mpc, "slow_svs": args.slow_svs, "env_config": env_cfg.to_dict(), "argv": sys.argv[1:] if argv is None else list(argv),
     }, indent=2))
     agent = load_agent(args.init_policy) if args.init_policy else None
-    env_fn = functools.partial(make_env, args.map, env_cfg, args.mpc, args.slow_svs)
+    env_fn = make_env(args.map, env_cfg, args.mpc, args.slow_svs)
     from bimacppo_sim import load_map
 
     tasks = sorted(load_map(args.map).turns)
@@ -111,6 +106,10 @@ def train_main(argv=None) -> int:
     res = trainer.train(args.episodes, resume=args.resume)
     print(f"trained {res.episodes} episodes ({res.env_steps} steps, {res.updates} updates); "
           f"success over the last {tcfg.success_window}: {100 * res.success_rate:.1f}%")
+    tm = res.timing
+    other = tm["total"] - tm["env"] - tm["policy"] - tm["update"]
+    print(f"time: {tm['total']:.1f} s = env {tm['env']:.1f} + policy {tm['policy']:.1f} + "
+          f"PPO update {tm['update']:.1f} + bookkeeping {other:.1f}")
     print(f"policy: {run_dir / 'policy.pt'}   history: {res.history_path}   checkpoint: {res.last_checkpoint}")
     return 0
 

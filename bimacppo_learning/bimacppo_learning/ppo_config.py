@@ -19,7 +19,7 @@ import yaml
 DEFAULT_PATH = pathlib.Path(__file__).resolve().parent / "config" / "ppo.yaml"
 
 ACTIVATIONS = ("tanh", "relu")
-VECTOR_MODES = ("async", "sync")
+VECTOR_MODES = ("batched", "async", "sync")
 
 
 def _fail(key: str, value: Any, why: str) -> None:
@@ -118,6 +118,7 @@ class TrainConfig:
     tensorboard: bool = True
     progress_bar: bool = True
     torch_threads: int = 1
+    update_threads: int = 0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -131,6 +132,7 @@ class TrainConfig:
         _boolean("tensorboard", self.tensorboard)
         _boolean("progress_bar", self.progress_bar)
         _integer("torch_threads", self.torch_threads, 1)
+        _integer("update_threads", self.update_threads, 0)
         _integer("seed", self.seed, 0)
 
 

@@ -116,18 +116,28 @@ class RolloutBuffer:
 
 
 # ------------------------------------------------------------------ vector envs
-def make_vector_env(env_fn: Callable[[], Any], num_envs: int, mode: str = "async"):
+def make_vector_env(env_fn: Callable[[], Any], num_envs: int, mode: str = "batched"):
     """Vector env with autoreset DISABLED: the trainer resets each finished sub-env itself, with
-    that env's own scheduler sample, so the curriculum decides every episode's scenario."""
+    that env's own scheduler sample, so the curriculum decides every episode's scenario.
+
+    batched: ``env_fn.make_batch(num_envs)`` (``vec_env.EnvFactory``): all envs in this process,
+    one NMPC call and one policy forward per step; async: one subprocess per env; sync: a plain
+    loop over ``env_fn()`` envs (any Gymnasium env, e.g. test doubles)."""
     import gymnasium as gym
     from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
 
-    if mode not in ("async", "sync"):
-        raise ValueError(f"vector mode must be 'async' or 'sync', got {mode!r}")
+    if mode not in ("batched", "async", "sync"):
+        raise ValueError(f"vector mode must be 'batched', 'async' or 'sync', got {mode!r}")
     if num_envs < 1:
         raise ValueError(f"num_envs must be >= 1, got {num_envs}")
     fns = [env_fn for _ in range(num_envs)]
-    if mode == "sync" or num_envs == 1:
+    if mode == "batched":
+        make_batch = getattr(env_fn, "make_batch", None)
+        if not callable(make_batch):
+            raise ValueError(f"vector mode 'batched' needs an env factory with make_batch(n) "
+                             f"(bimacppo_learning.vec_env.EnvFactory), got {env_fn!r}; use 'sync' or 'async'")
+        venv = make_batch(num_envs)
+    elif mode == "sync" or num_envs == 1:
         venv = SyncVectorEnv(fns, autoreset_mode=AutoresetMode.DISABLED)
     else:
         venv = AsyncVectorEnv(fns, autoreset_mode=AutoresetMode.DISABLED)

@@ -47,6 +47,7 @@ class TrainResult:
     run_dir: pathlib.Path
     history_path: pathlib.Path
     last_checkpoint: pathlib.Path | None
+    timing: dict                 # seconds of this call spent in env / policy / update / other (bookkeeping)
 
 
 class Trainer:
@@ -91,6 +92,7 @@ class Trainer:
         self.window: collections.deque[int] = collections.deque(maxlen=self.tcfg.success_window)
         self.last_checkpoint: pathlib.Path | None = None
         self._last_ckpt_episodes = 0
+        self.timing = {"env": 0.0, "policy": 0.0, "update": 0.0, "total": 0.0}
 
     # ------------------------------------------------------------------ public
     def train(self, episodes: int, resume: bool = False) -> TrainResult:
@@ -232,14 +234,21 @@ class Trainer:
         obs = reset_each(venv, [d[1] for d in draws], [d[2] for d in draws])
         hist = self.history_path.open("a")
         t0 = time.monotonic()
+        tm = self.timing
+        p0 = time.perf_counter()
         try:
             while self.episodes < budget:
                 buf.reset()
                 done_budget = False
                 for _ in range(T):
+                    c0 = time.perf_counter()
                     obs_n = agent.normalize_obs(obs, update=True)
                     actions, logp, values = agent.act(obs_n)
+                    c1 = time.perf_counter()
                     nxt, rew, term, trunc, infos = venv.step(actions)
+                    c2 = time.perf_counter()
+                    tm["policy"] += c1 - c0
+                    tm["env"] += c2 - c1
                     rew = np.asarray(rew, np.float64)
                     if not np.all(np.isfinite(rew)):
                         raise ValueError(f"env returned a non-finite reward: {rew}")
@@ -258,16 +267,21 @@ class Trainer:
                                                  hist, writer, bar, time.monotonic() - t0)
                             done_budget = self.episodes >= budget
                         if not done_budget:
+                            c3 = time.perf_counter()
                             nxt[i] = self._new_episode(venv, i, slots)
+                            tm["env"] += time.perf_counter() - c3
                     obs = nxt
                     if done_budget:
                         break
                 if buf.size * N >= 2:
+                    c4 = time.perf_counter()
                     self._update(buf, obs, writer)
+                    tm["update"] += time.perf_counter() - c4
                 if (self.episodes - self._last_ckpt_episodes >= self.tcfg.checkpoint_every
                         and self.episodes < budget):
                     self.save()
         finally:
+            tm["total"] += time.perf_counter() - p0
             hist.close()
 
     def _finish_episode(self, info: Mapping[str, Any], slot: dict, terminated: bool, hist,
@@ -284,7 +298,8 @@ class Trainer:
         sr = float(np.mean(self.window))
         sched = {k: float(v) for k, v in self.scheduler.log_dict().items()}
         rec = {"episode": self.episodes, "return": slot["ret"], "episode_return": env_ret,
-               "length": slot["len"], "outcome": outcome, "terminated": terminated,
+               "length": slot["len"], "ticks": int(info.get("episode_ticks", 0)),
+               "outcome": outcome, "terminated": terminated,
                "n_sv": slot["n_sv"], "task": slot["task"], "seed": slot["seed"],
                "env_steps": self.env_steps, "updates": self.updates,
                "success_rate": sr, "wall_s": round(elapsed, 3), "scheduler": sched}
@@ -321,8 +336,13 @@ class Trainer:
         last_n = agent.normalize_obs(obs)
         data = buf.finish(agent.value, last_n, cfg.gamma, cfg.gae_lambda)
         t0 = time.monotonic()
-        stats = agent.update(data["obs"], data["actions"], data["logp"], data["advantages"],
-                             data["returns"])
+        acting_threads = torch.get_num_threads()
+        torch.set_num_threads(self.tcfg.update_threads or os.cpu_count() or 1)
+        try:
+                stats = agent.update(data["obs"], data["actions"], data["logp"], data["advantages"],
+                                 data["returns"])
+        finally:
+            torch.set_num_threads(acting_threads)
         stats["update_s"] = time.monotonic() - t0
         stats["samples"] = float(data["obs"].shape[0])
         self.updates += 1
@@ -334,7 +354,7 @@ class Trainer:
     def _result(self) -> TrainResult:
         return TrainResult(self.episodes, self.env_steps, self.updates,
                            float(np.mean(self.window)) if self.window else float("nan"),
-                           self.run_dir, self.history_path, self.last_checkpoint)
+                           self.run_dir, self.history_path, self.last_checkpoint, dict(self.timing))
 
 
 def load_agent(path: str | os.PathLike) -> PPO:

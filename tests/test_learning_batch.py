@@ -1,0 +1,111 @@
+"""The batched decision step: B episodes in one IntersectionBatch reproduce B single envs.
+
+Parity is the point of the design (batch.py): the Gymnasium env is the batch with one slot, the
+training vector env the batch with num_envs slots, so a slot must not feel its neighbours (shared
+NMPC call, per-slot warm starts, per-slot resets in the middle of the others' episodes).
+"""
+import numpy as np
+import pytest
+
+from bimacppo_learning.batch import IntersectionBatch, draw_n_slow
+from bimacppo_learning.env import IntersectionEnv
+from bimacppo_learning.rollout import make_vector_env, reset_each, reset_one
+from bimacppo_learning.vec_env import BatchedVectorEnv, EnvFactory
+from bimacppo_planner.decision import EnvConfig
+
+EXT = EnvConfig.from_dict({"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
+                           "action": {"decision_every": 3}})
+OPTS = [{"n_sv": 3, "task": 0}, {"n_sv": 2, "task": "straight"}, {"n_sv": 1, "task": 2}]
+
+
+def _random_actions(rng, nvec, b):
+    # biased towards moving on (speed index >= 2) so that episodes end by success or collision too
+    a = np.stack([rng.integers(0, n, size=b) for n in nvec], 1)
+    a[:, 1] = np.maximum(a[:, 1], rng.integers(2, nvec[1], size=b))
+    return a
+
+
+def test_batch_reproduces_separate_single_envs_slot_by_slot():
+    B = 3
+    batch = IntersectionBatch(B, config=EXT)
+    envs = [IntersectionEnv(config=EXT) for _ in range(B)]
+    ob = np.stack([batch.reset(i, seed=100 + i, options=OPTS[i])[0] for i in range(B)])
+    oe = np.stack([envs[i].reset(seed=100 + i, options=OPTS[i])[0] for i in range(B)])
+    np.testing.assert_array_equal(ob, oe)
+    rng = np.random.default_rng(0)
+    outcomes = set()
+    ended = 0
+    for t in range(240):
+        a = _random_actions(rng, EXT.nvec, B)
+        o, r, te, tr, inf = batch.step(a)
+        for i in range(B):
+            o2, r2, te2, tr2, inf2 = envs[i].step(a[i])
+            np.testing.assert_allclose(o[i], o2, rtol=0, atol=1e-9)
+            assert r[i] == pytest.approx(r2, abs=1e-12)
+            assert (te[i], tr[i]) == (te2, tr2)
+            np.testing.assert_array_equal(batch.worlds[i].ego, envs[i].world.ego)
+            if te[i] or tr[i]:
+                assert inf[i]["outcome"] == inf2["outcome"]
+                assert inf[i]["episode_return"] == pytest.approx(inf2["episode_return"])
+                outcomes.add(inf[i]["outcome"])
+                ended += 1
+                s = 1000 + 10 * t + i       # a slot restarts while its neighbours keep driving
+                batch.reset(i, seed=s, options=OPTS[i])
+                envs[i].reset(seed=s, options=OPTS[i])
+    assert ended >= 6 and len(outcomes) >= 2, (ended, outcomes)
+
+
+def test_a_slot_must_be_reset_before_it_steps_again():
+    batch = IntersectionBatch(2, config=EXT)
+    with pytest.raises(RuntimeError, match=r"slot\(s\) \[0, 1\] need reset"):
+        batch.step(np.zeros((2, 3), np.int64))
+    batch.reset(0, seed=1, options=OPTS[0])
+    with pytest.raises(RuntimeError, match=r"\[1\]"):
+        batch.step(np.zeros((2, 3), np.int64))
+    batch.reset(1, seed=2, options=OPTS[1])
+    with pytest.raises(ValueError, match="shape"):
+        batch.step(np.zeros((3, 3), np.int64))
+    with pytest.raises(ValueError, match="unknown reset option"):
+        batch.reset(0, seed=1, options={"n_svs": 2})
+    with pytest.raises(ValueError, match="num_envs"):
+        IntersectionBatch(0)
+
+
+def test_vector_env_resets_only_masked_slots_and_reports_finished_episodes():
+    venv = make_vector_env(EnvFactory(env_config=EXT), 3, "batched")
+    assert isinstance(venv, BatchedVectorEnv)
+    obs = reset_each(venv, [5, 6, 7], OPTS)
+    assert obs.shape == (3, EXT.obs_dim)
+    before = [w.scenario for w in venv.batch.worlds]
+    o1, _ = reset_one(venv, 1, 42, {"n_sv": 0, "task": 1})
+    after = [w.scenario for w in venv.batch.worlds]
+    assert after[0] is before[0] and after[2] is before[2] and after[1].n_sv == 0
+    np.testing.assert_array_equal(o1, venv.batch.observe(1))
+    rng = np.random.default_rng(3)
+    for _ in range(400):
+        o, r, te, tr, infos = venv.step(_random_actions(rng, EXT.nvec, 3))
+        done = te | tr
+        if done.any():
+            assert set(np.nonzero(infos["_outcome"])[0]) == set(np.nonzero(done)[0])
+            for i in np.nonzero(done)[0]:
+                assert infos["outcome"][i] in ("success", "collision", "timeout")
+                assert infos["episode_ticks"][i] > 0
+            break
+    else:
+        pytest.fail("no episode ended in 400 decisions")
+    venv.close()
+
+
+def test_batched_mode_needs_a_factory_with_make_batch():
+    with pytest.raises(ValueError, match="make_batch"):
+        make_vector_env(lambda: IntersectionEnv(config=EXT), 2, "batched")
+
+
+def test_single_task_map_folds_tasks_and_slow_svs_follow_the_scenario_seed():
+    batch = IntersectionBatch(1, map_id="three_lane_straight", config=EXT, slow_svs=2)
+    for seed in range(6):
+        batch.reset(0, seed=seed, options={"n_sv": 3, "task": "left"})
+        sc = batch.scenarios[0]
+        assert sc.task == "straight"
+        assert sc.n_slow == draw_n_slow(sc.seed, 3, 2)
+        assert sum(sv.slow for sv in batch.worlds[0].svs) == sc.n_slow
