@@ -4,9 +4,37 @@ It composes the world, controller, curriculum and planner cores into a Gymnasium
 training loop, imitation, evaluation, reports and the experiment grid. Nothing deployed imports
 it: the planner node needs only bimacppo_planner.
 """
+import os
+from pathlib import Path
+
 from setuptools import find_packages, setup
+from setuptools.command.build_py import build_py
 
 PACKAGE = "bimacppo_learning"
+HERE = Path(__file__).resolve().parent
+# Gymnasium 1.x reads no entry points, so `gym.make("bimacppo/...")` in a fresh interpreter needs
+# the ids registered by an import hook; this .pth (site-packages root) installs it at start-up.
+# Its one line runs _gymnasium_hook.py's source in a namespace of its own: nothing of the package
+# is imported until gymnasium is.
+GYM_PTH = "bimacppo_learning-gymnasium.pth"
+
+
+def gymnasium_pth_line() -> str:
+    source = (HERE / PACKAGE / "_gymnasium_hook.py").read_text() + "\ninstall()\n"
+    return (f"import sys; exec(compile({source!r}, {GYM_PTH!r}, 'exec'), "
+            f"{{'__name__': 'bimacppo_learning_gymnasium_pth'}})\n")
+
+
+class build_py_with_pth(build_py):
+    """build_py that also writes GYM_PTH: into build_lib for a wheel, and into the editable
+    wheel's root (its install_lib) for `pip install -e`, whose build_lib is discarded."""
+
+    def run(self):
+        super().run()
+        target = self.get_finalized_command("install").install_lib if self.editable_mode else self.build_lib
+        os.makedirs(target, exist_ok=True)
+        Path(target, GYM_PTH).write_text(gymnasium_pth_line())
+
 
 setup(
     name=PACKAGE,
@@ -28,6 +56,6 @@ setup(
             "bimacppo-experiments = bimacppo_learning.experiments:main",
             "bimacppo-imitate = bimacppo_learning.imitation:main",
         ],
-        "gymnasium.envs": ["bimacppo = bimacppo_learning.env:register_envs"],
     },
+    cmdclass={"build_py": build_py_with_pth},
 )

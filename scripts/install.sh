@@ -22,7 +22,9 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 PIP=("$VENV/bin/python" -m pip --disable-pip-version-check)
 stamp="$VENV/.bimacppo-lock.sha256"
-want="$(cat "$ROOT/requirements.lock" "$ROOT"/bimacppo_*/setup.py "$ROOT/scripts/install.sh" | sha256sum | cut -d' ' -f1)"
+# _gymnasium_hook.py: its source is copied into a .pth at install time (bimacppo_learning/setup.py)
+want="$(cat "$ROOT/requirements.lock" "$ROOT"/bimacppo_*/setup.py "$ROOT/scripts/install.sh" \
+  "$ROOT/bimacppo_learning/bimacppo_learning/_gymnasium_hook.py" | sha256sum | cut -d' ' -f1)"
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
   echo ">> environment up to date ($VENV)"
 else

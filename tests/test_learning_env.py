@@ -1,10 +1,21 @@
-"""The high-level Gymnasium environment: API conformance, curriculum control, reward, determinism."""
+"""The high-level Gymnasium environment: API conformance, curriculum control, reward, determinism,
+registration with Gymnasium and the config ``gym.make`` passes."""
+import shutil
+import site
+import subprocess
+import sys
+import textwrap
+import zipfile
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
 from bimacppo_learning.env import MAP_IDS, IntersectionEnv, register_envs
+from bimacppo_planner.decision import ConfigError, EnvConfig
+from conftest import REPO
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +49,93 @@ def test_registered_ids_make_envs():
     obs, _ = e.reset(seed=1, options={"n_sv": 2, "task": "left"})
     assert e.observation_space.contains(obs)
     e.close()
+
+
+def _fresh_python(code: str, cwd) -> subprocess.CompletedProcess:
+    """``code`` in a new interpreter of this environment, outside the repository (whose
+    same-named ROS package folders must not shadow the installed packages)."""
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=cwd, capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_a_fresh_interpreter_makes_the_ids_with_no_extra_import(tmp_path):
+    out = _fresh_python("""
+        import sys
+        assert "bimacppo_learning" not in sys.modules, "the start-up hook imported the package"
+        import gymnasium as gym
+        for env_id in ("bimacppo/DualLaneIntersection-v0", "bimacppo/SingleLaneIntersection-v0",
+                       "bimacppo/ThreeLaneOvertake-v0"):
+            assert env_id in gym.registry, env_id
+        assert "bimacppo_learning.env" not in sys.modules, "registration imported the env module"
+        e = gym.make("bimacppo/DualLaneIntersection-v0")
+        obs, info = e.reset(seed=0, options={"n_sv": 1, "task": "left"})
+        print("OK", e.unwrapped.road.id, obs.shape, info["n_sv"])
+    """, tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:] + "\n(if the ids are missing: reinstall, scripts/install.sh)"
+    assert out.stdout.split() == ["OK", "dual_lane_4way", "(16,)", "1"]
+
+
+def test_module_prefixed_id_registers_without_the_startup_hook(tmp_path):
+    """``gym.make("bimacppo_learning:<id>")`` imports the package, which registers the ids: this
+    works where the .pth hook is absent (here: taken off sys.meta_path before gymnasium loads)."""
+    out = _fresh_python("""
+        import sys
+        sys.meta_path[:] = [f for f in sys.meta_path if getattr(f, "name", "") != "bimacppo_learning gymnasium ids"]
+        import gymnasium as gym
+        assert "bimacppo/ThreeLaneOvertake-v0" not in gym.registry
+        try:
+            gym.make("bimacppo/ThreeLaneOvertake-v0")
+        except gym.error.Error as exc:
+            print("without:", type(exc).__name__)
+        e = gym.make("bimacppo_learning:bimacppo/ThreeLaneOvertake-v0")
+        print("with:", e.unwrapped.road.id)
+    """, tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.splitlines() == ["without: NamespaceNotFound", "with: three_lane_straight"]
+
+
+def test_wheel_installs_the_same_startup_hook_as_the_editable_install(tmp_path):
+    """A regular ``pip install`` gets the .pth (wheel root = site-packages) that the editable
+    install of this environment holds; a mismatch means the environment needs a reinstall."""
+    src = tmp_path / "src"
+    shutil.copytree(REPO / "bimacppo_learning", src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
+    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
+                           "--disable-pip-version-check", str(src), "-w", str(tmp_path / "dist")],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (wheel,) = (tmp_path / "dist").glob("bimacppo_learning-*.whl")
+    with zipfile.ZipFile(wheel) as z:
+        pth = z.read("bimacppo_learning-gymnasium.pth").decode()
+    assert pth.startswith("import sys; exec(") and pth.count("\n") == 1
+    installed = [Path(p) / "bimacppo_learning-gymnasium.pth" for p in site.getsitepackages()]
+    installed = [p for p in installed if p.is_file()]
+    assert installed, "this environment lacks the start-up hook: run scripts/install.sh"
+    assert installed[0].read_text() == pth, "the installed hook is stale: run scripts/install.sh"
+
+
+@pytest.mark.parametrize("kind", ["str", "path", "dict"])
+def test_make_accepts_a_yaml_path_or_a_dict_as_config(tmp_path, kind):
+    yml = tmp_path / "env.yaml"
+    yml.write_text("observation:\n  max_sv: 2\n  sv_clip: 30.0\n")
+    config = {"str": str(yml), "path": yml, "dict": {"observation": {"max_sv": 2, "sv_clip": 30.0}}}[kind]
+    register_envs()
+    e = gym.make("bimacppo/DualLaneIntersection-v0", config=config)
+    cfg = e.unwrapped.cfg
+    assert (cfg.observation.max_sv, cfg.observation.sv_clip) == (2, 30.0)
+    assert cfg.reward == EnvConfig.load().reward          # what the config leaves out: the defaults
+    obs, _ = e.reset(seed=0, options={"n_sv": 2, "task": "left", "scenario_seed": 1})
+    assert obs.shape == (12,) == e.observation_space.shape   # ego + 2 SV slots
+    e.close()
+
+
+def test_make_rejects_a_bad_config_naming_the_problem(tmp_path):
+    register_envs()
+    with pytest.raises(ConfigError, match="sv_clipp"):
+        gym.make("bimacppo/DualLaneIntersection-v0", config={"observation": {"sv_clipp": 3.0}})
+    with pytest.raises(ConfigError, match="missing.yaml"):
+        gym.make("bimacppo/DualLaneIntersection-v0", config=tmp_path / "missing.yaml")
+    with pytest.raises(TypeError, match="config must be"):
+        gym.make("bimacppo/DualLaneIntersection-v0", config=3)
 
 
 def test_reset_options_set_the_scenario(env):
