@@ -109,3 +109,29 @@ def test_single_task_map_folds_tasks_and_slow_svs_follow_the_scenario_seed():
         assert sc.task == "straight"
         assert sc.n_slow == draw_n_slow(sc.seed, 3, 2)
         assert sum(sv.slow for sv in batch.worlds[0].svs) == sc.n_slow
+
+
+def test_worker_processes_give_the_in_process_trajectories_and_report_worker_errors():
+    one = BatchedVectorEnv(3, config=EXT)
+    two = BatchedVectorEnv(3, workers=2, config=EXT)
+    try:
+        o1 = reset_each(one, [11, 12, 13], OPTS)
+        o2 = reset_each(two, [11, 12, 13], OPTS)
+        np.testing.assert_array_equal(o1, o2)
+        rng = np.random.default_rng(5)
+        for t in range(60):
+            a = _random_actions(rng, EXT.nvec, 3)
+            r1, r2 = one.step(a), two.step(a)
+            np.testing.assert_array_equal(r1[0], r2[0])
+            np.testing.assert_array_equal(r1[1], r2[1])
+            for i in np.nonzero(r1[2] | r1[3])[0]:
+                assert r2[4]["outcome"][i] == r1[4]["outcome"][i]
+                reset_one(one, int(i), 500 + t, OPTS[i])
+                reset_one(two, int(i), 500 + t, OPTS[i])
+        with pytest.raises(RuntimeError, match="batched env worker: ValueError: unknown reset option"):
+            reset_one(two, 2, 1, {"bogus": 1})
+    finally:
+        one.close()
+        two.close()
+    with pytest.raises(ValueError, match="workers"):
+        BatchedVectorEnv(2, workers=3, config=EXT)

@@ -111,6 +111,7 @@ class TrainConfig:
 
     num_envs: int = 2
     vector: str = "async"
+    batch_workers: int = 1
     rollout_steps: int = 1024
     checkpoint_every: int = 100
     keep_checkpoints: int = 3
@@ -123,6 +124,9 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         _integer("num_envs", self.num_envs, 1)
+        _integer("batch_workers", self.batch_workers, 1)
+        if self.batch_workers > self.num_envs:
+            _fail("batch_workers", self.batch_workers, f"must be <= num_envs ({self.num_envs})")
         if self.vector not in VECTOR_MODES:
             _fail("vector", self.vector, f"must be one of {VECTOR_MODES}")
         _integer("rollout_steps", self.rollout_steps, 1)

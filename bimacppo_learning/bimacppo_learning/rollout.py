@@ -116,12 +116,13 @@ class RolloutBuffer:
 
 
 # ------------------------------------------------------------------ vector envs
-def make_vector_env(env_fn: Callable[[], Any], num_envs: int, mode: str = "batched"):
+def make_vector_env(env_fn: Callable[[], Any], num_envs: int, mode: str = "batched", workers: int = 1):
     """Vector env with autoreset DISABLED: the trainer resets each finished sub-env itself, with
     that env's own scheduler sample, so the curriculum decides every episode's scenario.
 
     batched: ``env_fn.make_batch(num_envs)`` (``vec_env.EnvFactory``): all envs in this process,
-    one NMPC call and one policy forward per step; async: one subprocess per env; sync: a plain
+    one NMPC call and one policy forward per step, in ``workers`` processes of num_envs/workers
+    envs each (1 = in this process); async: one subprocess per env; sync: a plain
     loop over ``env_fn()`` envs (any Gymnasium env, e.g. test doubles)."""
     import gymnasium as gym
     from gymnasium.vector import AsyncVectorEnv, AutoresetMode, SyncVectorEnv
@@ -136,7 +137,7 @@ def make_vector_env(env_fn: Callable[[], Any], num_envs: int, mode: str = "batch
         if not callable(make_batch):
             raise ValueError(f"vector mode 'batched' needs an env factory with make_batch(n) "
                              f"(bimacppo_learning.vec_env.EnvFactory), got {env_fn!r}; use 'sync' or 'async'")
-        venv = make_batch(num_envs)
+        venv = make_batch(num_envs, workers)
     elif mode == "sync" or num_envs == 1:
         venv = SyncVectorEnv(fns, autoreset_mode=AutoresetMode.DISABLED)
     else:

@@ -1,0 +1,107 @@
+#!/usr/bin/env python3
+"""Training throughput: the per-env subprocess path and the batched path, side by side, one run.
+
+Each configuration trains BiM-ACPPO from scratch for the same number of episodes, same seed and
+env config (default: the extended config of the shipped policy), in a fresh child process, and
+the table prints episodes/s, world ticks/s, decisions/s, the time split (env stepping, policy
+forward, PPO update, bookkeeping), peak memory, and each row's ratio to the first row. Prints
+figures; asserts nothing. Numbers on a shared machine are noisy: repeat with --repeat.
+
+    .venv/bin/python scripts/bench_train.py --episodes 500
+    .venv/bin/python scripts/bench_train.py --episodes 5000 --only batched     # a full paper-budget run
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+EXT = ROOT / "bimacppo_learning" / "bimacppo_learning" / "config" / "env_extended.yaml"
+# name -> train-section overrides; "per-env" is the loop as it ran before batching (2 subprocess
+# envs x 1024 steps per update); "batched" keeps 2048 samples per update (16 x 128).
+CONFIGS = {
+    "per-env": {"vector": "async", "num_envs": 2, "rollout_steps": 1024},
+    "batched": {"vector": "batched", "num_envs": 16, "rollout_steps": 128},
+}
+
+CHILD = r"""
+import json, resource, sys, time
+from bimacppo_curriculum import make_scheduler
+from bimacppo_learning.cli import make_env
+from bimacppo_learning.ppo_config import load_config
+from bimacppo_learning.trainer import Trainer
+from bimacppo_planner.decision import EnvConfig
+args = json.loads(sys.argv[1])
+env_cfg = EnvConfig.load(args["env_config"])
+pcfg, tcfg = load_config(train={**args["train"], "seed": args["seed"], "progress_bar": False, "tensorboard": False})
+sched = make_scheduler("bimab", seed=args["seed"], total_episodes=args["episodes"])
+t0 = time.perf_counter()
+res = Trainer(make_env("dual_lane_4way", env_cfg, "fast"), sched, args["run_dir"], pcfg, tcfg).train(args["episodes"])
+wall = time.perf_counter() - t0
+recs = [json.loads(l) for l in open(res.history_path)]
+ticks = sum(r["ticks"] for r in recs)
+self_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+kids_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+print("RESULT " + json.dumps({"wall": wall, "episodes": res.episodes, "decisions": res.env_steps, "ticks": ticks,
+                             "timing": res.timing, "success": sum(r["outcome"] == "success" for r in recs[-200:]) / max(1, len(recs[-200:])),
+                             "rss_main_mib": self_kib / 1024, "rss_worker_mib": kids_kib / 1024}))
+"""
+
+
+def run_one(name: str, episodes: int, seed: int, env_config: str) -> dict:
+    with tempfile.TemporaryDirectory(prefix=f"bench-{name}-") as tmp:
+        arg = json.dumps({"train": CONFIGS[name], "episodes": episodes, "seed": seed,
+                          "env_config": env_config, "run_dir": tmp})
+        out = subprocess.run([sys.executable, "-c", CHILD, arg], capture_output=True, text=True,
+                             env={**os.environ, "TQDM_DISABLE": "1"})
+    line = next((l for l in out.stdout.splitlines() if l.startswith("RESULT ")), None)
+    if out.returncode != 0 or line is None:
+        raise SystemExit(f"bench_train: {name} failed (exit {out.returncode}): {out.stderr.strip()[-1500:]}")
+    return json.loads(line[len("RESULT "):])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--episodes", type=int, default=500)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--repeat", type=int, default=1, help="runs per configuration (the table shows the median)")
+    ap.add_argument("--only", choices=sorted(CONFIGS), action="append", help="run only these configurations")
+    ap.add_argument("--env-config", default=str(EXT))
+    args = ap.parse_args()
+    names = args.only or list(CONFIGS)
+    rows = []
+    for name in names:
+        runs = []
+        for k in range(args.repeat):
+            print(f"{name}: run {k + 1}/{args.repeat}, {args.episodes} episodes ...", file=sys.stderr, flush=True)
+            runs.append(run_one(name, args.episodes, args.seed, args.env_config))
+        mid = sorted(runs, key=lambda r: r["wall"])[len(runs) // 2]
+        mid["eps_all"] = [r["episodes"] / r["wall"] for r in runs]
+        rows.append((name, mid))
+    base = rows[0][1]
+    print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
+          f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}\n")
+    print("| path | train config | episodes/s | ticks/s | decisions/s | ratio | env s | policy s | update s | other s | "
+          "peak RSS main / largest worker (MiB) | success, last 200 |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, r in rows:
+        tm = r["timing"]
+        other = tm["total"] - tm["env"] - tm["policy"] - tm["update"]
+        eps = r["episodes"] / r["wall"]
+        spread = f" ({min(r['eps_all']):.1f}-{max(r['eps_all']):.1f})" if len(r["eps_all"]) > 1 else ""
+        print(f"| {name} | {json.dumps(CONFIGS[name])} | {eps:.1f}{spread} | {r['ticks'] / r['wall']:.0f} | "
+              f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x | {tm['env']:.1f} | "
+              f"{tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | {r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | "
+              f"{100 * r['success']:.0f}% |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
