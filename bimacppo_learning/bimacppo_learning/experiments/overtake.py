@@ -1,0 +1,124 @@
+"""The overtaking step (paper §IV-C): fine-tune the best source seed on the three-lane road
+with slow SVs, then the fixed-seed tests."""
+from __future__ import annotations
+
+import functools
+import json
+from collections import Counter
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from bimacppo_sim import TASKS
+
+from .config import OUTCOMES, ExperimentConfig, ExperimentError
+from .runs import has_checkpoint, last_episode, read_eval_csv, read_history, run_status
+from .traffic import draw_n_slow, make_overtake_env
+
+
+def best_source_seed(cfg: ExperimentConfig) -> tuple[int, str]:
+    """The source method's seed to fine-tune: best mean success of its cached training-map
+    evaluation, else (nothing evaluated) best success over the last ``report.window`` training episodes."""
+    o = cfg.overtake
+    done = [s for s in cfg.seeds if run_status(cfg, o.source_method, s).done]
+    if not done:
+        raise ExperimentError(f"no finished {o.source_method} run under {Path(cfg.runs_dir) / cfg.train_map}: "
+                              f"run `bimacppo-experiments train --only {o.source_method}` first")
+    scores = {}
+    for s in done:
+        p = cfg.eval_prefix(cfg.run_dir(o.source_method, s), cfg.train_map).with_suffix(".csv")
+        if p.is_file():
+            scores[s] = float(np.mean([v[0] for v in read_eval_csv(p).values()]))
+    if scores:
+        s = max(scores, key=lambda k: (scores[k], -k))
+        return s, f"best mean success on {cfg.train_map} evaluation ({scores[s]:.1f}%)"
+    tail = {}
+    for s in done:
+        recs = read_history(cfg.run_dir(o.source_method, s))[-cfg.report.window:]
+        tail[s] = float(np.mean([r["outcome"] == "success" for r in recs]))
+    s = max(tail, key=lambda k: (tail[k], -k))
+    return s, f"best training success over the last {cfg.report.window} episodes ({100 * tail[s]:.1f}%; not evaluated)"
+
+
+def overtake(cfg: ExperimentConfig, echo: Callable[[str], None] = print) -> dict:
+    """Fine-tune the best source seed on the overtaking road, then the fixed-seed tests."""
+    from bimacppo_planner.agent import env_config_of, load_policy
+    from ..checkpoint import latest_checkpoint
+
+    o = cfg.overtake
+    seed, why = best_source_seed(cfg)
+    src = cfg.run_dir(o.source_method, seed)
+    ckpt = latest_checkpoint(src / "checkpoints") if (src / "checkpoints").is_dir() else None
+    if ckpt is None:
+        raise ExperimentError(f"{src}: no training checkpoint in checkpoints/ to fine-tune from")
+    out = cfg.overtake_dir(seed)
+    echo(f"overtaking: fine-tuning {o.source_method}-s{seed} ({why}) from {ckpt}")
+    if last_episode(out) >= o.episodes and (out / "policy.pt").is_file():
+        echo(f"overtaking: fine-tuned policy {out / 'policy.pt'} exists, skipped")
+    else:
+        finetune(cfg, ckpt, env_config_of(load_policy(src / "policy.pt")), out)
+    test_path = out / "test.json"
+    policy = out / "policy.pt"
+    if test_path.is_file() and test_path.stat().st_mtime > policy.stat().st_mtime:
+        res = json.loads(test_path.read_text())
+        if res.get("episodes") == o.test_episodes and res.get("n_sv") == o.test_n_sv:
+            echo(f"overtaking: cached {test_path}")
+            return res
+    res = overtake_test(cfg, policy)
+    res.update(source=f"{o.source_method}-s{seed}", source_reason=why, init_checkpoint=str(ckpt))
+    test_path.write_text(json.dumps(res, indent=2))
+    echo(f"overtaking: {res['success_pct']:.0f}% success over {res['episodes']} tests -> {test_path}")
+    return res
+
+
+def finetune(cfg: ExperimentConfig, ckpt: Path, env_cfg, out: Path) -> None:
+    """bimacppo-train --init-policy, in-process: the CLI cannot pass the wrapper that folds the
+    tasks and sets n_slow (docs/experiments.md)."""
+    from bimacppo_curriculum import make_scheduler
+
+    from ..cli import run_meta
+    from ..ppo_config import load_config
+    from ..trainer import Trainer, load_agent
+
+    o, t = cfg.overtake, cfg.train
+    out.mkdir(parents=True, exist_ok=True)
+    pcfg, tcfg = load_config(t.ppo_config, train={"seed": o.seed, "num_envs": t.num_envs, "vector": t.vector})
+    sched = make_scheduler(o.curriculum, seed=o.seed, total_episodes=o.episodes)
+    (out / "run.json").write_text(json.dumps({
+        "curriculum": o.curriculum, "episodes": o.episodes, "seed": o.seed, "map": o.map, "mpc": t.mpc,
+        "init_policy": str(ckpt), "n_slow_max": o.n_slow_max, "env_config": env_cfg.to_dict()}, indent=2))
+    env_fn = functools.partial(make_overtake_env, o.map, env_cfg, t.mpc, o.n_slow_max)
+    Trainer(env_fn, sched, out, pcfg, tcfg, agent=load_agent(ckpt),
+            run_meta=run_meta(env_cfg, o.curriculum, o.map, o.seed, t.mpc)).train(o.episodes, resume=has_checkpoint(out))
+
+
+def overtake_test(cfg: ExperimentConfig, policy_path: Path) -> dict:
+    """``test_episodes`` episodes with ``test_n_sv`` SVs, seeds from evaluate.eval_seed, the
+    number of slow SVs drawn per seed (draw_n_slow)."""
+    from tqdm.auto import tqdm
+
+    from bimacppo_planner.agent import env_config_of, load_policy
+    from ..evaluate import eval_seed
+
+    o = cfg.overtake
+    policy = load_policy(policy_path)
+    env = make_overtake_env(o.map, env_config_of(policy), cfg.train.mpc, o.n_slow_max)
+    task = env.unwrapped.tasks[0]
+    j = TASKS.index(task)
+    counts: Counter = Counter()
+    slow: Counter = Counter()
+    for k in tqdm(range(o.test_episodes), unit="ep", desc="overtaking tests", disable=None):
+        seed = eval_seed(j, o.test_n_sv, k)
+        n_slow = draw_n_slow(seed, o.test_n_sv, o.n_slow_max)
+        slow[n_slow] += 1
+        obs, _ = env.reset(options={"n_sv": o.test_n_sv, "task": task, "scenario_seed": seed, "n_slow": n_slow})
+        done = False
+        while not done:
+            obs, _, term, trunc, info = env.step(policy.act(obs, deterministic=True))
+            done = term or trunc
+        counts[info["outcome"]] += 1
+    env.close()
+    n = o.test_episodes
+    return {"episodes": n, "n_sv": o.test_n_sv, "n_slow_counts": {str(k): v for k, v in sorted(slow.items())},
+            **{f"{x}_pct": 100.0 * counts[x] / n for x in OUTCOMES}}
