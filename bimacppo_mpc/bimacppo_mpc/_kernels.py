@@ -15,13 +15,18 @@ line-search SQP on it:
   function is the cost itself and bounds hold exactly up to rounding, which a final
   forward clamp removes.
 
-Everything is allocation-light and compiled with ``cache=True`` so a fresh process pays
-the compile once per machine, not per run.
+Each problem is solved from two starts and the cheaper result is kept (see
+``steer_bound_start``): the closed-loop problems have several strict local minima, and a
+warm-started chain otherwise stays in whichever one it entered first.
+
+Everything is compiled with ``cache=True`` so a fresh process pays the compile once per
+machine, not per run. The batch kernel has a serial and a ``prange`` variant around the
+same per-slot routine.
 """
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 # status codes shared with controller.py (STATUS_TEXT there)
 ST_OK = 0
@@ -37,8 +42,8 @@ ST_NONFINITE_RESULT = 8
 # indices into the packed parameter vector P (built by controller.pack_params)
 P_L, P_DT, P_AMIN, P_AMAX, P_DMIN, P_DMAX, P_VMIN, P_VMAX = 0, 1, 2, 3, 4, 5, 6, 7
 P_QX, P_QU, P_QDU = 8, 12, 14
-P_BRAKE, P_RELAX, P_TOL, P_EXACT = 16, 17, 18, 19
-P_SIZE = 20
+P_BRAKE, P_RELAX, P_TOL, P_EXACT, P_STEER_START = 16, 17, 18, 19, 20
+P_SIZE = 21
 
 # numerical constants of the linear algebra (not tuning knobs: scale-free guards)
 _EPS_PIVOT = 1e-12       # relative pivot below which a working-set row is dependent
@@ -53,6 +58,10 @@ _RHO_GROWTH = 10.0
 _SHIFT0 = 1e-4           # first trial diagonal shift, relative to max |H_ii|
 _SHIFT_GROWTH = 8.0      # trial shifts grow by this factor (IPOPT uses 8 too) ...
 _SHIFT_BISECT = 4        # ... then this many geometric bisection steps tighten it
+# the second start replaces the first only if cheaper by more than this (relative): closer
+# costs are the same minimum reached to within the convergence tolerance, and keeping the
+# first start's copy keeps the result a smooth function of the data (warm-start chains)
+_SAME_MINIMUM = 1e-6
 
 
 @njit(cache=True)
@@ -752,59 +761,112 @@ def prepare(x0, xref, uprev, P, xr, vlo, vhi):
 
 
 @njit(cache=True)
-def solve_batch_kernel(X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
-                       Uout, Xout, cost, status, iters):
-    """B independent problems; Uwarm/has_warm are the per-slot warm starts (updated here)."""
-    B = X0.shape[0]
+def steer_bound_start(x0, xref, uprev, z_from, P, vlo, vhi, z, X):
+    """The second start: the accelerations of z_from with the steering held at whichever
+    bound (left or right) costs less after projection. It lies in the basin of the
+    solutions that turn as hard as allowed, which a chain warm-started from its own
+    smooth plans rarely reaches (docs/mpc.md, "Two starts")."""
+    N = z.size // 2
+    best = np.inf
+    zc = np.empty(2 * N)
+    for side in range(2):
+        dval = P[P_DMAX] if side == 0 else P[P_DMIN]
+        for k in range(N):
+            zc[2 * k] = z_from[2 * k]
+            zc[2 * k + 1] = dval
+        project(zc, x0[2], vlo, vhi, P)
+        rollout(x0, zc, P, X)
+        Jc = cost_of(X, zc, xref, uprev, P)
+        if Jc < best:
+            best = Jc
+            z[:] = zc
+    return best
+
+
+@njit(cache=True)
+def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
+               Uout, Xout, cost, status, iters):
+    """Problem bi of a batch: checks, one or two starts (the cheaper converged result is
+    kept), warm start and fallback. Touches only slot bi of every array, so slots can run
+    on different threads."""
     N = Uwarm.shape[1]
     n = 2 * N
+    x0 = X0[bi]
+    uprev = Uprev[bi]
+    X = Xout[bi]
     xr = np.empty(4)
     vlo = np.empty(N)
     vhi = np.empty(N)
     z = np.empty(n)
-    u = np.empty(2)
-    for bi in range(B):
-        st = prepare(X0[bi], Xref[bi], Uprev[bi], P, xr, vlo, vhi)
-        it = 0
-        J = np.nan
-        if st == ST_OK:
-            initial_guess(X0[bi], xr, Uprev[bi], Uwarm[bi], has_warm[bi], guesses, P, vlo, vhi, z, Xout[bi])
-            st, J, it = sqp(X0[bi], xr, Uprev[bi], z, P, max_iter, qp_max_iter, vlo, vhi, Xout[bi])
-        if st == ST_OK:
-            project(z, X0[bi, 2], vlo, vhi, P)
-            rollout(X0[bi], z, P, Xout[bi])
-            J = cost_of(Xout[bi], z, xr, Uprev[bi], P)
-            finite = math.isfinite(J)
+    st = prepare(x0, Xref[bi], uprev, P, xr, vlo, vhi)
+    it = 0
+    J = np.nan
+    if st == ST_OK:
+        initial_guess(x0, xr, uprev, Uwarm[bi], has_warm[bi], guesses, P, vlo, vhi, z, X)
+        st, J, it = sqp(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X)
+        if P[P_STEER_START] > 0.5 and max_iter > 0:
+            z2 = np.empty(n)
+            steer_bound_start(x0, xr, uprev, z, P, vlo, vhi, z2, X)
+            st2, J2, it2 = sqp(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, X)
+            it += it2
+            if st2 == ST_OK and (st != ST_OK or J2 < J - _SAME_MINIMUM * (1.0 + abs(J))):
+                st = st2
+                z[:] = z2
+    if st == ST_OK:
+        project(z, x0[2], vlo, vhi, P)
+        rollout(x0, z, P, X)
+        J = cost_of(X, z, xr, uprev, P)
+        finite = math.isfinite(J)
+        for k in range(N):
+            if not (math.isfinite(z[2 * k]) and math.isfinite(z[2 * k + 1])):
+                finite = False
+        if not finite:
+            st = ST_NONFINITE_RESULT
+    if st == ST_OK:
+        for k in range(N):
+            Uout[bi, k, 0] = z[2 * k]
+            Uout[bi, k, 1] = z[2 * k + 1]
+            Uwarm[bi, k, 0] = z[2 * k]
+            Uwarm[bi, k, 1] = z[2 * k + 1]
+        has_warm[bi] = True
+    else:
+        u = np.empty(2)
+        fallback(x0, uprev, P, u)
+        for k in range(N):
+            Uout[bi, k, 0] = u[0]
+            Uout[bi, k, 1] = u[1]
+        has_warm[bi] = False
+        finite_x0 = True
+        for i in range(4):
+            if not math.isfinite(x0[i]):
+                finite_x0 = False
+        if finite_x0:
             for k in range(N):
-                if not (math.isfinite(z[2 * k]) and math.isfinite(z[2 * k + 1])):
-                    finite = False
-            if not finite:
-                st = ST_NONFINITE_RESULT
-        if st == ST_OK:
-            for k in range(N):
-                Uout[bi, k, 0] = z[2 * k]
-                Uout[bi, k, 1] = z[2 * k + 1]
-                Uwarm[bi, k, 0] = z[2 * k]
-                Uwarm[bi, k, 1] = z[2 * k + 1]
-            has_warm[bi] = True
+                z[2 * k] = u[0]
+                z[2 * k + 1] = u[1]
+            rollout(x0, z, P, X)
         else:
-            fallback(X0[bi], Uprev[bi], P, u)
-            for k in range(N):
-                Uout[bi, k, 0] = u[0]
-                Uout[bi, k, 1] = u[1]
-            has_warm[bi] = False
-            finite_x0 = True
-            for i in range(4):
-                if not math.isfinite(X0[bi, i]):
-                    finite_x0 = False
-            if finite_x0:
-                for k in range(N):
-                    z[2 * k] = u[0]
-                    z[2 * k + 1] = u[1]
-                rollout(X0[bi], z, P, Xout[bi])
-            else:
-                Xout[bi, :, :] = np.nan
-            J = np.nan
-        cost[bi] = J
-        status[bi] = st
-        iters[bi] = it
+            X[:, :] = np.nan
+        J = np.nan
+    cost[bi] = J
+    status[bi] = st
+    iters[bi] = it
+
+
+@njit(cache=True)
+def solve_batch_kernel(X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
+                       Uout, Xout, cost, status, iters):
+    """B independent problems on the calling thread; Uwarm/has_warm are the per-slot warm starts (updated here)."""
+    for bi in range(X0.shape[0]):
+        solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
+                   Uout, Xout, cost, status, iters)
+
+
+@njit(cache=True, parallel=True)
+def solve_batch_parallel(X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
+                         Uout, Xout, cost, status, iters):
+    """As solve_batch_kernel, with the slots spread over numba's threads (they share only
+    read-only inputs); the same solve_slot runs, so the results are the serial ones."""
+    for bi in prange(X0.shape[0]):
+        solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
+                   Uout, Xout, cost, status, iters)

@@ -80,6 +80,7 @@ def pack_params(cfg: MPCConfig) -> np.ndarray:
     P[K.P_RELAX] = 1.0 if cfg.relax_infeasible_speed_bounds else 0.0
     P[K.P_TOL] = cfg.fast.tol
     P[K.P_EXACT] = 1.0 if cfg.fast.hessian == "exact" else 0.0
+    P[K.P_STEER_START] = 1.0 if cfg.fast.steer_bound_start else 0.0
     return P
 
 
@@ -118,8 +119,18 @@ class MPCController:
         self.reset()
 
     # ---------------------------------------------------------------- public API
-    def reset(self) -> None:
-        """Forget every warm start (call at the start of an episode)."""
+    def reset(self, slots=None) -> None:
+        """Forget warm starts (call at the start of an episode): every one, or only those of
+        ``solve_batch`` slots ``slots`` (one episode of a batch restarting while the others run)."""
+        if slots is not None:
+            idx = np.asarray(slots, dtype=np.int64).reshape(-1)
+            n = self._hasB.shape[0]
+            if n == 0:
+                return                # no batch solved yet: nothing is warm
+            if idx.size and (idx.min() < 0 or idx.max() >= n):
+                raise ValueError(f"slots {idx.tolist()} outside the batch of {n}")
+            self._hasB[idx] = False
+            return
         self._warm1 = np.zeros((1, self.N, 2))
         self._has1 = np.zeros(1, dtype=np.bool_)
         self._warmB = np.zeros((0, self.N, 2))
@@ -193,14 +204,72 @@ class MPCController:
 
 
 class FastController(MPCController):
-    """numba SQP; the whole batch runs in one compiled call."""
+    """numba SQP; the whole batch runs in one compiled call, over several threads when it is large."""
 
     solver_name = "fast"
 
+    def __init__(self, cfg: MPCConfig):
+        super().__init__(cfg)
+        self._lo = (cfg.a_min, cfg.delta_min)
+        self._hi = (cfg.a_max, cfg.delta_max)
+        self._cost1 = np.empty(1)
+        self._status1 = np.empty(1, dtype=np.int64)
+        self._iters1 = np.empty(1, dtype=np.int64)
+        self.set_threads(cfg.fast.threads)
+
+    def set_threads(self, threads: int) -> None:
+        """Threads for a batch of at least ``fast.parallel_min_batch`` problems (0: numba's default, one per core)."""
+        import numba
+
+        if not isinstance(threads, (int, np.integer)) or isinstance(threads, bool) or threads < 0:
+            raise ValueError(f"threads: expected an integer >= 0, got {threads!r}")
+        self.threads = min(int(threads), numba.config.NUMBA_NUM_THREADS) or numba.config.NUMBA_NUM_THREADS
+
+    def solve(self, x0, x_ref, u_prev) -> MPCResult:
+        # The same kernel as solve_batch with B = 1, without the batch bookkeeping: at ~0.1 ms per
+        # solve the Python around the kernel is a sizeable share of the time.
+        x0 = _as_array("x0", x0, (4,))
+        x_ref = _as_array("x_ref", x_ref, (4,))
+        u_prev = _as_array("u_prev", u_prev, (2,))
+        t0 = time.perf_counter()
+        N = self.N
+        U = np.empty((1, N, 2))
+        X = np.empty((1, N + 1, 4))
+        f = self.cfg.fast
+        try:
+            K.solve_batch_kernel(x0.reshape(1, 4), x_ref.reshape(1, 4), u_prev.reshape(1, 2), self._warm1,
+                                 self._has1, self.guesses, self.P, f.max_iter, f.qp_max_iter, U, X,
+                                 self._cost1, self._status1, self._iters1)
+        except Exception:  # the error barrier of _run turns it into the fallback
+            return self._single(self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1), t0)
+        a, d = U[0, 0, 0], U[0, 0, 1]
+        if not (self._lo[0] <= a <= self._hi[0] and self._lo[1] <= d <= self._hi[1]):   # also catches NaN
+            return self._single(self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1), t0)
+        st = int(self._status1[0])
+        return MPCResult(u=U[0, 0].copy(), U=U[0], X=X[0], cost=float(self._cost1[0]), status=STATUS_TEXT[st],
+                         ok=st == K.ST_OK, solve_time_s=time.perf_counter() - t0,
+                         iterations=int(self._iters1[0]))
+
+    @staticmethod
+    def _single(b: MPCBatchResult, t0: float) -> MPCResult:
+        return MPCResult(u=b.u[0], U=b.U[0], X=b.X[0], cost=float(b.cost[0]), status=b.status[0],
+                         ok=bool(b.ok[0]), solve_time_s=time.perf_counter() - t0, iterations=int(b.iterations[0]))
+
     def _solve_all(self, X0, Xref, Uprev, warm, has_warm, U, X, cost, status, iters):
         f = self.cfg.fast
-        K.solve_batch_kernel(X0, Xref, Uprev, warm, has_warm, self.guesses, self.P, f.max_iter,
-                             f.qp_max_iter, U, X, cost, status, iters)
+        args = (X0, Xref, Uprev, warm, has_warm, self.guesses, self.P, f.max_iter, f.qp_max_iter,
+                U, X, cost, status, iters)
+        if X0.shape[0] < f.parallel_min_batch or self.threads == 1:
+            K.solve_batch_kernel(*args)
+            return None
+        import numba
+
+        before = numba.get_num_threads()
+        numba.set_num_threads(self.threads)
+        try:
+            K.solve_batch_parallel(*args)
+        finally:
+            numba.set_num_threads(before)
         return None
 
 
