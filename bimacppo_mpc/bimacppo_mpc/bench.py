@@ -6,7 +6,8 @@
    gives one recorded problem (x0, x_ref, u_prev). Settings: config/bench.yaml.
 2. Both configurations then solve every recorded problem, episode by episode (warm
    starts as in closed loop, ``reset()`` at each episode start), timing each call.
-3. solve_batch throughput for several batch sizes, one episode per batch slot.
+3. solve_batch throughput for several batch sizes, one episode per batch slot, on one
+   thread and on all of numba's threads (the ratio is the parallel speed-up).
 
     python -m bimacppo_mpc.bench [--episodes E] [--out results.md]
 
@@ -170,20 +171,28 @@ def solve_all(ctrl, episodes: List[Episode], progress=None):
                 u=np.array(us))
 
 
-def batch_throughput(cfg: MPCConfig, episodes: List[Episode], B: int, steps: int) -> float:
+def batch_throughput(cfg: MPCConfig, episodes: List[Episode], B: int, steps: int, threads: int = 1) -> float:
+    """Problems per second of solve_batch with B slots (one episode each) on ``threads`` threads."""
     ctrl = make_controller(cfg, "fast")
+    ctrl.set_threads(threads)
     T = min(len(ep.X0) for ep in episodes)
     steps = min(steps, T)
     slots = [episodes[i % len(episodes)] for i in range(B)]
     X0 = np.stack([[ep.X0[t] for ep in slots] for t in range(steps)])
     Xr = np.stack([[ep.Xref[t] for ep in slots] for t in range(steps)])
     Up = np.stack([[ep.Uprev[t] for ep in slots] for t in range(steps)])
-    ctrl.solve_batch(X0[0], Xr[0], Up[0])   # excluded: allocation of the B warm-start slots
+    ctrl.solve_batch(X0[0], Xr[0], Up[0])   # excluded: allocation of the B warm-start slots, thread start
     ctrl.reset()
     t0 = time.perf_counter()
     for t in range(steps):
         ctrl.solve_batch(X0[t], Xr[t], Up[t])
     return B * steps / (time.perf_counter() - t0)
+
+
+def _peak_rss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _pct(a, q):
@@ -214,46 +223,64 @@ def main(argv=None) -> int:
     n = sum(len(e.X0) for e in episodes)
     ipopt = make_controller(cfg, "ipopt")
     ipopt.solve([0, 0, 1, 0], [5, 0, 2, 0], [0, 0])
+    rss0 = _peak_rss_mb()
     with tqdm(total=n, desc="fast", unit="pb") as bar:
         rf = solve_all(fast, episodes, bar)
+    rss_f = _peak_rss_mb()
     with tqdm(total=n, desc="ipopt", unit="pb") as bar:
         ri = solve_all(ipopt, episodes, bar)
-    with tqdm(total=len(bc.batch_sizes), desc="batched", unit="B") as bar:
+    rss_i = _peak_rss_mb()
+    import numba
+
+    threads = (1, numba.config.NUMBA_NUM_THREADS) if numba.config.NUMBA_NUM_THREADS > 1 else (1,)
+    with tqdm(total=len(bc.batch_sizes) * len(threads), desc="batched", unit="run") as bar:
         thr = {}
         for B in bc.batch_sizes:
-            thr[B] = batch_throughput(cfg, episodes, B, bc.batch_steps)
-            bar.update(1)
+            for nt in threads:
+                thr[B, nt] = batch_throughput(cfg, episodes, B, bc.batch_steps, nt)
+                bar.update(1)
 
     both = rf["ok"] & ri["ok"]
     gap = (rf["cost"][both] - ri["cost"][both]) / np.maximum(ri["cost"][both], 1e-12)
     du = np.abs(rf["u"][both] - ri["u"][both]).max(axis=1)
-    med_f, med_i = _pct(rf["time"], 50), _pct(ri["time"], 50)
+    tf, ti = rf["time"], ri["time"]
+    med_f, med_i = _pct(tf, 50), _pct(ti, 50)
+    p99_f, p99_i = _pct(tf, 99), _pct(ti, 99)
+    worse = int((gap > 0.01).sum())
     rows = [
-        ("problems (closed-loop steps)", f"{n} from {n_ep} episodes", ""),
-        ("median solve time", f"{med_f * 1e3:.3f} ms", f"{med_i * 1e3:.3f} ms"),
-        ("p99 solve time", f"{_pct(rf['time'], 99) * 1e3:.3f} ms", f"{_pct(ri['time'], 99) * 1e3:.3f} ms"),
-        ("max solve time", f"{rf['time'].max() * 1e3:.3f} ms", f"{ri['time'].max() * 1e3:.3f} ms"),
-        ("speed-up (median ipopt / median fast)", f"{med_i / med_f:.1f}x", ""),
+        ("problems (closed-loop steps)", f"{n} from {n_ep} episodes", "", ""),
+        ("median solve time", f"{med_f * 1e3:.3f} ms", f"{med_i * 1e3:.3f} ms", f"{med_i / med_f:.1f}x"),
+        ("p99 solve time", f"{p99_f * 1e3:.3f} ms", f"{p99_i * 1e3:.3f} ms", f"{p99_i / p99_f:.1f}x"),
+        ("max solve time", f"{tf.max() * 1e3:.3f} ms", f"{ti.max() * 1e3:.3f} ms", f"{ti.max() / tf.max():.1f}x"),
         ("iterations median / p99 / max", f"{_pct(rf['iters'], 50):.0f} / {_pct(rf['iters'], 99):.0f} / "
          f"{rf['iters'].max()}", f"{_pct(ri['iters'], 50):.0f} / {_pct(ri['iters'], 99):.0f} / "
-         f"{ri['iters'].max()}"),
-        ("failures (ok=False)", f"{int((~rf['ok']).sum())}", f"{int((~ri['ok']).sum())}"),
-        ("cost gap (J_fast - J_ipopt) / J_ipopt, median", f"{_pct(gap, 50):+.2e}", ""),
-        ("cost gap p99 / max", f"{_pct(gap, 99):+.2e} / {gap.max():+.2e}", ""),
-        ("cost gap min (fast better)", f"{gap.min():+.2e}", ""),
+         f"{ri['iters'].max()}", ""),
+        ("failures (ok=False)", f"{int((~rf['ok']).sum())}", f"{int((~ri['ok']).sum())}", ""),
+        ("process peak RSS after the pass (growth)", f"{rss_f:.0f} MB (+{rss_f - rss0:.0f})",
+         f"{rss_i:.0f} MB (+{rss_i - rss_f:.0f})", ""),
+        ("cost gap (J_fast - J_ipopt) / J_ipopt, median", f"{_pct(gap, 50):+.2e}", "", ""),
+        ("cost gap p99 / max", f"{_pct(gap, 99):+.2e} / {gap.max():+.2e}", "", ""),
+        ("cost gap min (fast better)", f"{gap.min():+.2e}", "", ""),
         ("problems with gap > +1% (fast worse) / < -1% (fast better)",
-         f"{int((gap > 0.01).sum())} / {int((gap < -0.01).sum())} of {both.sum()}", ""),
-        ("max |u_fast - u_ipopt| median / p99", f"{_pct(du, 50):.2e} / {_pct(du, 99):.2e}", ""),
+         f"{worse} / {int((gap < -0.01).sum())} of {both.sum()}", "", ""),
+        ("share within 1 % of IPOPT or cheaper", f"{100.0 * (1.0 - worse / max(both.sum(), 1)):.1f} %", "", ""),
+        ("max |u_fast - u_ipopt| median / p99", f"{_pct(du, 50):.2e} / {_pct(du, 99):.2e}", "", ""),
     ]
-    rows += [(f"solve_batch throughput B={B}", f"{thr[B]:,.0f} problems/s", "") for B in bc.batch_sizes]
-    rows.append(("numba load (or compile) on first use", f"{t_load:.1f} s", ""))
+    for B in bc.batch_sizes:
+        cells = " / ".join(f"{thr[B, nt]:,.0f}" for nt in threads)
+        label = " / ".join(str(nt) for nt in threads)
+        ratio = f"{thr[B, threads[-1]] / thr[B, 1]:.2f}x" if len(threads) > 1 else ""
+        rows.append((f"solve_batch throughput B={B}, {label} thread(s) [problems/s]", cells, "", ratio))
+    rows.append(("numba load (or compile) on first use", f"{t_load:.1f} s", "", ""))
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)
-    print(f"\n{'':{w0}}  {'fast':{w1}}  ipopt")
+    w2 = max(len(r[2]) for r in rows)
+    print(f"\n{'':{w0}}  {'fast':{w1}}  {'ipopt':{w2}}  ratio")
     for r in rows:
-        print(f"{r[0]:{w0}}  {r[1]:{w1}}  {r[2]}")
+        print(f"{r[0]:{w0}}  {r[1]:{w1}}  {r[2]:{w2}}  {r[3]}")
     if args.out:
-        lines = ["| metric | fast | ipopt |", "|---|---|---|"] + [f"| {a} | {b} | {c} |" for a, b, c in rows]
+        lines = ["| metric | fast | ipopt | ratio |", "|---|---|---|---|"] + [f"| {a} | {b} | {c} | {d} |"
+                                                                     for a, b, c, d in rows]
         lines.append("")
         lines.append(f"Machine: {platform.processor() or platform.machine()}, Python {sys.version.split()[0]}, "
                      f"N = {cfg.horizon}, dt = {cfg.dt} s.")
