@@ -111,7 +111,8 @@ def test_report_rejects_a_directory_without_history(tmp_path, capsys):
     from bimacppo_learning.report import main as report_main
 
     assert report_main([str(tmp_path), "--out", str(tmp_path / "x")]) == 2
-    assert "history.jsonl" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "history.jsonl" in err and err.startswith("bimacppo-report: error: ")
 
 
 def test_policy_carries_its_env_config(trained):
@@ -142,3 +143,96 @@ def test_train_on_the_straight_road_folds_tasks_and_slows_svs(trained, tmp_path,
     assert json.loads((out / "run.json").read_text())["slow_svs"] == 2
     assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "r"), "--slow-svs", "7"]) == 2
     assert "--slow-svs" in capsys.readouterr().err
+
+
+# --- refusals: one `bimacppo-<tool>: error: ...` line, exit status 2, the run directory untouched ---
+
+
+def _one_error_line(err: str, prog: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith(("INFO ", "WARNING "))]
+    assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: "), err
+    return lines[0]
+
+
+def _snapshot(run):
+    return {p.relative_to(run): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def env_yaml(tmp_path):
+    def write(text):
+        path = tmp_path / f"env{abs(hash(text))}.yaml"
+        path.write_text(text)
+        return path
+    return write
+
+
+def test_resume_with_another_env_config_is_refused_and_leaves_the_run_as_it_was(trained, env_yaml, capsys):
+    _, cfg, run = trained
+    before = _snapshot(run)
+    rc = train_main(["--episodes", "8", "--seed", "1", "--run-dir", str(run), "--ppo-config", str(cfg),
+                     "--no-progress", "--resume", "--env-config", str(env_yaml("observation:\n  sv_clip: 30.0\n"))])
+    assert rc == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "another env config" in line and "observation.sv_clip: 7.5 != 30.0" in line
+    assert _snapshot(run) == before          # run.json, history and checkpoints as they were
+
+
+def test_resume_with_another_ppo_config_or_without_resume_is_refused_before_writing(trained, tmp_path, capsys):
+    _, cfg, run = trained
+    before = _snapshot(run)
+    other = tmp_path / "ppo.yaml"
+    other.write_text(SMALL.replace("epochs: 2", "epochs: 3"))
+    assert train_main(["--episodes", "8", "--seed", "1", "--run-dir", str(run), "--ppo-config", str(other),
+                       "--no-progress", "--resume"]) == 2
+    assert "ppo.epochs: 2 != 3" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert train_main(["--episodes", "8", "--seed", "1", "--run-dir", str(run), "--ppo-config", str(cfg),
+                       "--no-progress"]) == 2
+    assert "--resume" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert _snapshot(run) == before
+
+
+def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
+    _, cfg, run = trained
+    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(ckpt.read_bytes()[:200])
+    cases = [
+        ([str(tmp_path / "missing.pt")], "missing.pt: no such file"),
+        ([str(corrupt)], "corrupt.pt: not a readable torch file"),
+        ([str(ckpt), "--env-config", str(env_yaml("observation:\n  max_sv: 2\n"))],
+         "its agent takes observations of size 16 and actions nvec=[5, 5, 3]; this run's env config gives 12"),
+        ([str(ckpt), "--env-config", str(env_yaml("observation:\n  sv_clip: 30.0\nreward:\n  step: -0.1\n"))],
+         "observation.sv_clip: 7.5 != 30.0; reward.step: -0.02 != -0.1"),
+        ([str(run / "policy.pt")], "expected 'bimacppo-ppo-checkpoint'"),
+    ]
+    for k, (extra, says) in enumerate(cases):
+        out = tmp_path / f"r{k}"
+        rc = train_main(["--episodes", "2", "--run-dir", str(out), "--ppo-config", str(cfg), "--no-progress",
+                         "--init-policy", *extra])
+        assert rc == 2, extra
+        assert says in _one_error_line(capsys.readouterr().err, "bimacppo-train"), extra
+        assert not out.exists()
+
+
+def test_report_refuses_a_bad_window_on_one_line(trained, tmp_path, capsys):
+    from bimacppo_learning.report import main as report_main
+
+    _, _, run = trained
+    for w in ("-3", "0"):
+        assert report_main([str(run), "--out", str(tmp_path / "x"), "--window", w]) == 2
+        assert "--window must be >= 1" in _one_error_line(capsys.readouterr().err, "bimacppo-report")
+    assert report_main([str(run), "--out", str(tmp_path / "x"), "--window", "1"]) == 0
+
+
+def test_report_counts_episodes_per_second_over_every_resumed_segment():
+    from bimacppo_learning.report import summary, training_wall_s
+
+    # 10 episodes in 20 s, then a resume (wall_s restarts at 0) and 10 more in 5 s
+    recs = [{"episode": k, "n_sv": 0, "outcome": "success", "wall_s": 2.0 * k} for k in range(1, 11)]
+    recs += [{"episode": 10 + k, "n_sv": 0, "outcome": "success", "wall_s": 0.5 * k} for k in range(1, 11)]
+    assert training_wall_s(recs) == (25.0, 2)
+    s = summary(recs)
+    assert s["wall_s"] == 25.0 and s["segments"] == 2 and s["episodes_per_s"] == pytest.approx(20 / 25)
+    assert training_wall_s(recs[:10]) == (20.0, 1)
+    assert training_wall_s([{"episode": 1}])[1] == 0

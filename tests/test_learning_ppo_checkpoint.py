@@ -196,3 +196,33 @@ def test_damaged_policy_file_raises(trained, tmp_path):
     from_ckpt, exported = Policy.load(tr.last_checkpoint), Policy.load(path)
     obs = np.linspace(-1.0, 1.0, exported.obs_dim)
     assert np.array_equal(from_ckpt.act(obs), exported.act(obs))
+
+
+def test_checkpoints_carry_the_run_metadata_and_its_env_config(tmp_path):
+    from bimacppo_learning.checkpoint import run_meta_of
+    from bimacppo_planner.decision import EnvConfig
+
+    p, t = cfg(checkpoint_every=10)
+    meta = {"env_config": EnvConfig.load(overrides={"observation.sv_clip": 30.0}).to_dict(), "map": "toy"}
+    tr = Trainer(ToyIntersectionEnv, ToyScheduler(), tmp_path, p, t, run_meta=meta)
+    tr.train(episodes=10)
+    ck = load_checkpoint(tr.last_checkpoint)
+    assert run_meta_of(ck, tr.last_checkpoint) == meta
+    assert Policy.load(tr.last_checkpoint).meta == meta
+    assert Policy.load(tmp_path / "policy.pt").meta["env_config"]["observation"]["sv_clip"] == 30.0
+    assert run_meta_of({k: v for k, v in ck.items() if k != "run"}, "x.pt") == {}
+    with pytest.raises(CheckpointError, match="x.pt: run metadata is not valid JSON"):
+        run_meta_of({**ck, "run": "{not json"}, "x.pt")
+    with pytest.raises(CheckpointError, match="run metadata is a list"):
+        run_meta_of({**ck, "run": "[1]"}, "x.pt")
+
+
+def test_config_differences_name_every_differing_leaf():
+    from bimacppo_learning.checkpoint import config_differences
+
+    saved = {"observation": {"sv_clip": 7.5, "max_sv": 3}, "reward": {"step": -0.02}}
+    now = {"observation": {"sv_clip": 30.0, "max_sv": 3}, "reward": {}, "extra": 1}
+    assert config_differences(saved, now) == ["extra: <absent> != 1", "observation.sv_clip: 7.5 != 30.0",
+                                              "reward.step: -0.02 != <absent>"]
+    assert config_differences(saved, saved) == []
+    assert config_differences({"epochs": 2}, {"epochs": 3}, "ppo") == ["ppo.epochs: 2 != 3"]

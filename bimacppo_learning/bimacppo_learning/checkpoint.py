@@ -8,6 +8,7 @@ leaves the previous file intact.  Any unreadable, truncated, foreign or mis-shap
 """
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 import re
@@ -63,6 +64,38 @@ def restore_agent(agent, state: Mapping[str, Any], path: str | os.PathLike) -> N
         agent.load_state_dict(state)
     except (ValueError, KeyError, RuntimeError, TypeError) as exc:
         raise CheckpointError(path, f"does not fit this agent: {exc}") from None
+
+
+def run_meta_of(d: Mapping[str, Any], path: str | os.PathLike) -> dict:
+    """How the run that wrote checkpoint ``d`` was set up (the Trainer's ``run_meta``, stored as
+    JSON under "run"); {} for a checkpoint written without it."""
+    raw = d.get("run")
+    if raw is None or raw == "":
+        return {}
+    try:
+        meta = json.loads(raw) if isinstance(raw, (str, bytes)) else raw
+    except ValueError as exc:
+        raise CheckpointError(path, f"run metadata is not valid JSON: {exc}") from None
+    if not isinstance(meta, Mapping):
+        raise CheckpointError(path, f"run metadata is a {type(meta).__name__}, expected a dict")
+    return dict(meta)
+
+
+def config_differences(saved: Any, current: Any, prefix: str = "") -> list[str]:
+    """``"section.key: saved != current"`` for every leaf where two nested config dicts differ
+    (a key on one side only shows ``<absent>`` on the other), in key order."""
+    if isinstance(saved, Mapping) and isinstance(current, Mapping):
+        out = []
+        for k in sorted(set(saved) | set(current), key=str):
+            name = f"{prefix}.{k}" if prefix else str(k)
+            if k not in saved or k not in current:
+                a = saved[k] if k in saved else "<absent>"
+                b = current[k] if k in current else "<absent>"
+                out.append(f"{name}: {a} != {b}")
+            else:
+                out += config_differences(saved[k], current[k], name)
+        return out
+    return [] if saved == current else [f"{prefix}: {saved} != {current}"]
 
 
 def checkpoint_path(directory: str | os.PathLike, episodes: int) -> pathlib.Path:

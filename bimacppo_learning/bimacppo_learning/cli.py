@@ -10,6 +10,7 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 from bimacppo_curriculum import SCHEDULERS, make_scheduler
 
@@ -59,19 +60,88 @@ def _train_parser() -> argparse.ArgumentParser:
     return p
 
 
+def fail(prog: str, message: Any) -> int:
+    """Report a refused command the way argparse's ``parser.error`` does (``prog: error: ...``,
+    exit status 2), on one line and without the usage: the message says what to change."""
+    print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
+    return 2
+
+
+def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_cfg: EnvConfig) -> str | None:
+    """Why a checkpoint cannot continue (--resume) or start (--init-policy) a run with ``env_cfg``:
+    another observation or action size, or another env config (a checkpoint that records none was
+    made with the packaged one, the rule deployment follows); None if it fits."""
+    from .checkpoint import config_differences
+
+    if (int(obs_dim), tuple(int(n) for n in nvec)) != (env_cfg.obs_dim, tuple(env_cfg.nvec)):
+        return (f"{path}: its agent takes observations of size {obs_dim} and actions nvec={list(nvec)}; "
+                f"this run's env config gives {env_cfg.obs_dim} and {list(env_cfg.nvec)}")
+    raw = run_meta_.get("env_config")
+    try:
+        saved = EnvConfig.load() if raw is None else EnvConfig.from_dict(raw, where=f"{path} (run env_config)")
+    except ConfigError as exc:
+        return str(exc)
+    diff = config_differences(saved.to_dict(), env_cfg.to_dict())
+    if diff:
+        return (f"{path}: was trained with another env config ({'; '.join(diff)}; checkpoint != this run): "
+                "pass the --env-config it was trained with")
+    return None
+
+
+def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path):
+    """Every check a run can fail before it starts, so that a refused run leaves its directory as
+    it was. Returns (error message or None, the --init-policy agent or None)."""
+    from .checkpoint import (CheckpointError, config_differences, latest_checkpoint, load_checkpoint,
+                             run_meta_of)
+    from .ppo_config import config_from_dict, config_to_dict
+    from .trainer import load_agent
+
+    path = latest = latest_checkpoint(run_dir / "checkpoints")
+    try:
+        if latest is not None and not args.resume:
+            return (f"{run_dir} already holds checkpoints ({latest.name}): pass --resume to continue it, "
+                    "or give another --run-dir"), None
+        if args.resume and latest is not None:
+            d = load_checkpoint(latest)
+            why = check_checkpoint_fits(latest, d["agent"]["obs_dim"], d["agent"]["nvec"],
+                                        run_meta_of(d, latest), env_cfg)
+            if why:
+                return why, None
+            try:
+                saved_pcfg, _ = config_from_dict(d["config"], source=str(latest))
+            except ValueError as exc:
+                return f"{latest}: config is invalid: {exc}", None
+            diff = config_differences(config_to_dict(saved_pcfg)["ppo"], config_to_dict(pcfg)["ppo"], "ppo")
+            if diff:
+                return (f"{latest}: was trained with another PPO config ({'; '.join(diff)}; checkpoint != "
+                        "this run): resume with the same ppo section"), None
+        agent = None
+        if args.init_policy is not None:
+            path = args.init_policy
+            meta = run_meta_of(load_checkpoint(path), path)
+            agent = load_agent(path)
+            why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg)
+            if why:
+                return why, None
+    except CheckpointError as exc:
+        return str(exc), None
+    except (KeyError, TypeError, ValueError) as exc:
+        return f"{path}: malformed checkpoint ({type(exc).__name__}: {exc})", None
+    return None, agent
+
+
 def train_main(argv=None) -> int:
     args = _train_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    from .checkpoint import CheckpointError
     from .ppo_config import load_config
-    from .trainer import Trainer, load_agent
+    from .trainer import Trainer
 
+    prog = "bimacppo-train"
     if args.episodes < 1:
-        print("bimacppo-train: --episodes must be >= 1", file=sys.stderr)
-        return 2
+        return fail(prog, f"--episodes must be >= 1, got {args.episodes}")
     if not 0 <= args.slow_svs <= 3:
-        print(f"bimacppo-train: --slow-svs must be in 0..3 (at most N_sv^max SVs), got {args.slow_svs}",
-              file=sys.stderr)
-        return 2
+        return fail(prog, f"--slow-svs must be in 0..3 (at most N_sv^max SVs), got {args.slow_svs}")
     try:
         env_cfg = EnvConfig.load(args.env_config)
         train_over = {"seed": args.seed}
@@ -85,15 +155,16 @@ def train_main(argv=None) -> int:
         sched = make_scheduler(args.curriculum, seed=args.seed, total_episodes=args.episodes,
                                config=args.curriculum_config)
     except (ConfigError, ValueError, OSError) as exc:
-        print(f"bimacppo-train: {exc}", file=sys.stderr)
-        return 2
+        return fail(prog, exc)
     run_dir = args.run_dir or Path("runs") / f"{args.curriculum}-s{args.seed}"
+    why, agent = _preflight(args, env_cfg, pcfg, run_dir)
+    if why:
+        return fail(prog, why)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "run.json").write_text(json.dumps({
         "curriculum": args.curriculum, "episodes": args.episodes, "seed": args.seed, "map": args.map,
         "mpc": args.mpc, "slow_svs": args.slow_svs, "env_config": env_cfg.to_dict(), "argv": sys.argv[1:] if argv is None else list(argv),
     }, indent=2))
-    agent = load_agent(args.init_policy) if args.init_policy else None
     env_fn = make_env(args.map, env_cfg, args.mpc, args.slow_svs)
     from bimacppo_sim import load_map
 
@@ -103,7 +174,10 @@ def train_main(argv=None) -> int:
               "arms all run as that task (its arm statistics are then not meaningful)", file=sys.stderr)
     trainer = Trainer(env_fn, sched, run_dir, pcfg, tcfg, agent=agent,
                       run_meta=run_meta(env_cfg, args.curriculum, args.map, args.seed, args.mpc))
-    res = trainer.train(args.episodes, resume=args.resume)
+    try:
+        res = trainer.train(args.episodes, resume=args.resume)
+    except CheckpointError as exc:
+        return fail(prog, exc)
     print(f"trained {res.episodes} episodes ({res.env_steps} steps, {res.updates} updates); "
           f"success over the last {tcfg.success_window}: {100 * res.success_rate:.1f}%")
     tm = res.timing
@@ -124,17 +198,22 @@ def _eval_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="bimacppo-evaluate",
         description="The paper's evaluation protocol: every task x N_sv cell, N episodes on fixed "
-                    "scenario seeds shared by all methods; prints the S/C/TO table (markdown) and writes CSV.")
+                    "scenario seeds shared by all methods; prints the S/C/TO table (markdown), with a "
+                    "uniform random policy's row on the same scenarios under each task, and writes CSV.")
     p.add_argument("policy", nargs="?", default=None,
                    help="policy.pt export or training checkpoint (default: the shipped policy)")
     p.add_argument("--map", default="dual_lane_4way", choices=MAPS)
-    p.add_argument("--episodes", type=int, default=100, help="episodes per cell (paper: 100)")
+    p.add_argument("--episodes", type=int, default=100, help="episodes per cell, 1..1000 (paper: 100)")
     p.add_argument("--n-sv", type=int, nargs="+", default=[0, 1, 2, 3])
     p.add_argument("--tasks", nargs="+", default=["left", "straight", "right"],
                    choices=["left", "straight", "right"])
     p.add_argument("--workers", type=int, default=2, help="processes (cells run in parallel)")
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast")
-    p.add_argument("--out", type=Path, default=None, help="write OUT.md and OUT.csv")
+    p.add_argument("--env-config", type=Path, default=None,
+                   help="YAML replacing the env config stored in the policy file (default: that one)")
+    p.add_argument("--no-random-row", action="store_true", help="skip the random-policy baseline rows")
+    p.add_argument("--out", type=Path, default=None,
+                   help="write OUT.md (the table), OUT.csv (the policy's cells) and OUT_random.csv")
     p.add_argument("--title", default="")
     return p
 
@@ -143,29 +222,40 @@ def evaluate_main(argv=None) -> int:
     args = _eval_parser().parse_args(argv)
     from bimacppo_sim import TASKS
 
-    from bimacppo_planner.agent import load_policy
     from .checkpoint import CheckpointError
-    from .evaluate import evaluate, to_markdown, write_outputs
+    from .evaluate import EvaluationError, check_cells, evaluate, resolve_policy, to_markdown, write_outputs
 
-    try:
-        load_policy(args.policy)   # fail fast, in this process, with a clear message
-    except CheckpointError as exc:
-        print(f"bimacppo-evaluate: {exc}", file=sys.stderr)
-        return 2
+    prog = "bimacppo-evaluate"
     if not 1 <= args.episodes <= 1000:
-        print("bimacppo-evaluate: --episodes must be in 1..1000", file=sys.stderr)
-        return 2
+        return fail(prog, f"--episodes must be in 1..1000, got {args.episodes}")
+    if args.workers < 1:
+        return fail(prog, f"--workers must be >= 1, got {args.workers}")
     tasks = [TASKS.index(t) for t in args.tasks]
+    try:
+        check_cells(args.map, args.n_sv, tasks)
+    except ValueError as exc:
+        return fail(prog, f"{exc}: choose --n-sv / --tasks within it")
+    try:   # fail fast, in this process, with a clear message
+        resolve_policy(args.policy, args.env_config)
+    except (CheckpointError, EvaluationError, ConfigError) as exc:
+        return fail(prog, exc)
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=len(tasks) * len(args.n_sv), unit="cell", desc="evaluating")
+    n_cells = len(tasks) * len(args.n_sv) * (1 if args.no_random_row else 2)
+    bar = tqdm(total=n_cells, unit="cell", desc="evaluating", disable=None)
 
     def progress(cell):
         bar.update(1)
-        bar.set_postfix_str(f"{TASKS[cell.task]} N_sv={cell.n_sv}: S={cell.pct('success'):.0f}%")
+        who = "random " if cell.policy == "random" else ""
+        bar.set_postfix_str(f"{who}{TASKS[cell.task]} N_sv={cell.n_sv}: S={cell.pct('success'):.0f}%")
 
-    results = evaluate(args.policy, args.map, args.n_sv, tasks, args.episodes, args.workers, args.mpc, progress)
-    bar.close()
+    try:
+        results = evaluate(args.policy, args.map, args.n_sv, tasks, args.episodes, args.workers, args.mpc,
+                           progress, env_config=args.env_config, random_row=not args.no_random_row)
+    except (CheckpointError, EvaluationError, ConfigError) as exc:
+        return fail(prog, exc)
+    finally:
+        bar.close()
     print(to_markdown(results, args.title))
     if args.out:
         md, cs = write_outputs(results, args.out, args.title)

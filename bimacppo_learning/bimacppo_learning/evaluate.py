@@ -3,23 +3,49 @@
 Every method is evaluated on exactly the same scenarios: the scenario seed of episode k
 in cell (task j, N_sv i) is ``EVAL_SEED_BASE + 10_000*j + 1_000*i + k``, far away from
 the seeds training draws (those come from the training RNG, uniformly in [0, 2^31)).
+
+Any policy can be put through it (``evaluate(policy, ...)``): a policy file (export or training
+checkpoint; None = the shipped policy), or an object with ``predict(obs)`` (Stable-Baselines3
+style, returning ``(action, state)``; called with ``deterministic=True`` when it takes that) or
+``act(obs)``, or a plain callable ``obs -> action``. An action is one integer per MultiDiscrete
+head. An object may also have ``begin_episode(scenario_seed)``, called before each episode.
+
+Beside the policy, a uniform random policy runs on the same cells and scenario seeds (its
+actions seeded per episode, so its numbers do not depend on the workers): the floor every table
+is read against. Cells run in ``workers`` spawned processes; a failure in any of them ends the
+whole evaluation with ``EvaluationError`` (or ``CheckpointError`` for an unusable policy file),
+also when a worker dies outright.
 """
 from __future__ import annotations
 
 import csv
+import inspect
 import io
+import json
 import multiprocessing as mp
+import os
+import pickle
+import queue
+import warnings
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
 from bimacppo_sim import TASKS
 
+from bimacppo_planner.policy import CheckpointError
+
 EVAL_SEED_BASE = 1_000_000
 OUTCOMES = ("success", "collision", "timeout")
+POLICY = "policy"          # CellResult.policy of the evaluated policy's cells
+RANDOM = "random"          # ... and of the random baseline's
+
+
+class EvaluationError(Exception):
+    """The evaluation could not run; the message is one line naming the cell and the cause."""
 
 
 def eval_seed(task: int, n_sv: int, k: int) -> int:
@@ -34,6 +60,7 @@ class CellResult:
     n_sv: int
     counts: Counter
     returns: list
+    policy: str = POLICY    # POLICY or RANDOM
 
     @property
     def n(self) -> int:
@@ -43,62 +70,320 @@ class CellResult:
         return 100.0 * self.counts.get(outcome, 0) / max(self.n, 1)
 
 
-def _run_cell(args):
-    policy_path, map_id, task, n_sv, episodes, mpc_solver = args
-    from bimacppo_planner.agent import env_config_of, load_policy
+class RandomPolicy:
+    """Uniform random MultiDiscrete actions; episode k's actions are a function of (seed, its
+    scenario seed) only, so every run (any worker count) gets the same random baseline."""
+
+    def __init__(self, nvec: Iterable[int], seed: int = 0):
+        self.nvec = np.asarray(list(nvec), np.int64)
+        self.seed = int(seed)
+        self.rng = np.random.default_rng(self.seed)
+
+    def begin_episode(self, scenario_seed: int) -> None:
+        self.rng = np.random.default_rng([self.seed, int(scenario_seed)])
+
+    def act(self, obs) -> np.ndarray:
+        return self.rng.integers(0, self.nvec).astype(np.int64)
+
+
+# ------------------------------------------------------------------ policies
+def _takes(fn: Callable, name: str) -> bool:
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == name or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+
+
+def as_actor(policy: Any) -> Callable[[np.ndarray], Any]:
+    """``obs -> action`` for a policy object (see the module docstring), deterministic if it can be."""
+    for method in ("predict", "act"):
+        fn = getattr(policy, method, None)
+        if callable(fn):
+            kw = {"deterministic": True} if _takes(fn, "deterministic") else {}
+            if method == "predict":
+                def actor(obs, fn=fn, kw=kw):
+                    out = fn(obs, **kw)
+                    return out[0] if isinstance(out, tuple) else out
+                return actor
+            return lambda obs, fn=fn, kw=kw: fn(obs, **kw)
+    if callable(policy):
+        return policy
+    raise TypeError(f"a {type(policy).__name__} is not a policy: it needs predict(obs), act(obs) or to be "
+                    "callable, or give a policy file")
+
+
+def check_action(action: Any, nvec: tuple[int, ...]) -> np.ndarray:
+    a = np.asarray(action)
+    try:
+        flat = a.reshape(-1).astype(np.float64)
+    except (TypeError, ValueError):
+        flat = None
+    if (flat is None or flat.shape != (len(nvec),) or not np.all(np.isfinite(flat))
+            or not np.all(flat == np.round(flat)) or np.any(flat < 0) or np.any(flat >= np.asarray(nvec))):
+        raise EvaluationError(f"the policy returned the action {np.array2string(a, separator=', ')}; expected "
+                              f"{len(nvec)} integers of MultiDiscrete({list(nvec)})")
+    return flat.astype(np.int64)
+
+
+def _obs_size(policy: Any) -> int | None:
+    dim = getattr(policy, "obs_dim", None)
+    if isinstance(dim, (int, np.integer)):
+        return int(dim)
+    shape = getattr(getattr(policy, "observation_space", None), "shape", None)
+    if isinstance(shape, tuple) and len(shape) == 1:
+        return int(shape[0])
+    return None
+
+
+# ------------------------------------------------------------------ cells
+def _materialise(spec: tuple, env_config) -> tuple[str, Any]:
+    kind, value = spec
+    if kind == "path":
+        from bimacppo_planner.agent import load_policy
+
+        return POLICY, load_policy(value)
+    if kind == RANDOM:
+        return RANDOM, RandomPolicy(env_config.nvec, value)
+    return POLICY, value
+
+
+def _run_cell(job: tuple) -> tuple:
+    spec, env_config, map_id, task, n_sv, episodes, mpc_solver = job
     from .env import IntersectionEnv
 
-    policy = load_policy(policy_path)
-    env = IntersectionEnv(map_id=map_id, config=env_config_of(policy), mpc_solver=mpc_solver)
+    label, policy = _materialise(spec, env_config)
+    actor = as_actor(policy)
+    begin = getattr(policy, "begin_episode", None)
+    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver)
+    nvec = tuple(int(n) for n in env.cfg.nvec)
     counts: Counter = Counter()
     returns = []
-    for k in range(episodes):
-        obs, _ = env.reset(options={"n_sv": n_sv, "task": task, "scenario_seed": eval_seed(task, n_sv, k)})
-        done = False
-        while not done:
-            obs, _, term, trunc, info = env.step(policy.act(obs, deterministic=True))
-            done = term or trunc
-        counts[info["outcome"]] += 1
-        returns.append(float(info["episode_return"]))
-    return task, n_sv, counts, returns
+    try:
+        for k in range(episodes):
+            seed = eval_seed(task, n_sv, k)
+            obs, _ = env.reset(options={"n_sv": n_sv, "task": task, "scenario_seed": seed})
+            if callable(begin):
+                begin(seed)
+            done = False
+            while not done:
+                obs, _, term, trunc, info = env.step(check_action(actor(obs), nvec))
+                done = term or trunc
+            counts[info["outcome"]] += 1
+            returns.append(float(info["episode_return"]))
+    finally:
+        env.close()
+    return label, task, n_sv, counts, returns
 
 
-def evaluate(policy_path: str, map_id: str = "dual_lane_4way", n_svs: Iterable[int] = (0, 1, 2, 3),
-             tasks: Iterable[int] = (0, 1, 2), episodes: int = 100, workers: int = 2,
-             mpc_solver: str = "fast", progress: Callable | None = None) -> list[CellResult]:
-    """Run the protocol with a saved policy; cells are spread over ``workers`` processes."""
-    jobs = [(str(policy_path), map_id, int(t), int(n), int(episodes), mpc_solver) for t in tasks for n in n_svs]
-    results = []
-    if workers <= 1:
-        it = map(_run_cell, jobs)
-        for r in it:
-            results.append(CellResult(*r))
-            if progress:
-                progress(results[-1])
+def _job_error(job: tuple, exc: BaseException) -> tuple:
+    """A failed cell as plain strings (these always cross a process boundary)."""
+    if isinstance(exc, CheckpointError):
+        return ("checkpoint", exc.path, exc.problem)
+    label = "random policy" if job[0][0] == RANDOM else "policy"
+    cause = str(exc) if isinstance(exc, EvaluationError) else f"{type(exc).__name__}: {exc}"
+    return ("other", f"{label} on {TASKS[job[3]]}, N_sv={job[4]}: {cause}")
+
+
+def _raise(err: tuple):
+    if err[0] == "checkpoint":
+        raise CheckpointError(err[1], err[2]) from None
+    raise EvaluationError(err[1]) from None
+
+
+def _worker(tasks, results) -> None:
+    """Run cells until the sentinel; report each result or the first failure, then stop."""
+    job = None
+    try:
+        while (item := tasks.get()) is not None:
+            i, job = item
+            results.put(("ok", i, _run_cell(job)))
+    except BaseException as exc:  # noqa: BLE001 - everything goes back to the parent as text
+        results.put(("error", -1, _job_error(job, exc) if job is not None else
+                     ("other", f"evaluation worker: {type(exc).__name__}: {exc}")))
+
+
+def _run_parallel(jobs: list[tuple], workers: int, on_result: Callable[[tuple], None]) -> None:
+    ctx = mp.get_context("spawn")
+    tasks, results = ctx.Queue(), ctx.Queue()
+    n = min(workers, len(jobs))
+    for i, job in enumerate(jobs):
+        tasks.put((i, job))
+    for _ in range(n):
+        tasks.put(None)
+    procs = [ctx.Process(target=_worker, args=(tasks, results), daemon=True) for _ in range(n)]
+    for p in procs:
+        p.start()
+    try:
+        pending = len(jobs)
+        while pending:
+            try:
+                kind, _, payload = results.get(timeout=1.0)
+            except queue.Empty:
+                dead = [p.exitcode for p in procs if p.exitcode not in (None, 0)]
+                if dead:
+                    raise EvaluationError(f"an evaluation worker died (exit code {dead[0]}) with "
+                                          f"{pending} cell(s) unfinished") from None
+                if all(p.exitcode is not None for p in procs):   # all gone, queue drained
+                    raise EvaluationError(f"the evaluation workers ended with {pending} cell(s) unfinished")
+                continue
+            if kind == "error":
+                _raise(payload)
+            pending -= 1
+            on_result(payload)
+    finally:
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        for p in procs:
+            p.join(timeout=10)
+        tasks.close()
+        results.close()
+        tasks.cancel_join_thread()
+        results.cancel_join_thread()
+
+
+# ------------------------------------------------------------------ the protocol
+def resolve_policy(policy: Any, env_config=None) -> tuple[tuple, Any, Any]:
+    """(worker spec, loaded policy, env config) for what ``evaluate`` was given; a file is
+    loaded here (CheckpointError, in this process) and its stored env config is the default."""
+    from bimacppo_planner.agent import env_config_of, load_policy, shipped_policy_path
+    from bimacppo_planner.decision import EnvConfig
+    from bimacppo_planner.policy import Policy
+
+    from .env import as_env_config
+
+    if policy is None or isinstance(policy, (str, os.PathLike)):
+        path = shipped_policy_path() if policy is None or str(policy) in ("", "shipped") else Path(policy)
+        loaded = load_policy(path)
+        spec = ("path", str(path))
     else:
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(workers) as pool:
-            for r in pool.imap_unordered(_run_cell, jobs):
-                results.append(CellResult(*r))
-                if progress:
-                    progress(results[-1])
-    results.sort(key=lambda c: (c.task, c.n_sv))
+        as_actor(policy)   # TypeError now for what is no policy
+        loaded, spec = policy, ("object", policy)
+    cfg = as_env_config(env_config)
+    if cfg is None:
+        cfg = env_config_of(loaded) if isinstance(loaded, Policy) else EnvConfig.load()
+    size = _obs_size(loaded)
+    if size is not None and size != cfg.obs_dim:
+        what = getattr(loaded, "path", None) or type(loaded).__name__
+        raise EvaluationError(f"{what}: the policy takes observations of size {size}; the env config gives "
+                              f"{cfg.obs_dim} (observation.max_sv={cfg.observation.max_sv})")
+    nvec = getattr(loaded, "nvec", None)
+    if nvec is not None and tuple(int(x) for x in nvec) != tuple(cfg.nvec):
+        what = getattr(loaded, "path", None) or type(loaded).__name__
+        raise EvaluationError(f"{what}: the policy acts over nvec={list(nvec)}; the env config gives {list(cfg.nvec)}")
+    return spec, loaded, cfg
+
+
+def check_cells(map_id: str, n_svs: Iterable[int], tasks: Iterable[int]) -> None:
+    """Every requested cell exists on the map (ValueError naming the first one that does not)."""
+    from bimacppo_sim import load_map
+
+    road = load_map(map_id)
+    for n in n_svs:
+        if not 0 <= int(n) <= road.max_sv:
+            raise ValueError(f"N_sv={n} impossible on map {map_id!r} (0..{road.max_sv})")
+    for t in tasks:
+        if not 0 <= int(t) < len(TASKS) or TASKS[int(t)] not in road.turns:
+            name = TASKS[int(t)] if 0 <= int(t) < len(TASKS) else t
+            raise ValueError(f"map {map_id!r} has no task {name!r} (it has {sorted(road.turns)})")
+
+
+_RANDOM_CACHE: dict[str, CellResult] = {}
+
+
+def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable[int] = (0, 1, 2, 3),
+             tasks: Iterable[int] = (0, 1, 2), episodes: int = 100, workers: int = 2,
+             mpc_solver: str = "fast", progress: Callable | None = None, *,
+             env_config: Any = None, random_row: bool = True, random_seed: int = 0) -> list[CellResult]:
+    """Run the protocol; see the module docstring.
+
+    ``env_config`` (EnvConfig, YAML path or dict) replaces the policy's own (a policy file's
+    stored one, else the packaged env.yaml). ``random_row`` adds the random policy's cells
+    (``policy == RANDOM``) on the same env config and scenarios; they are cached per process.
+    Objects that cannot be pickled run in this process whatever ``workers`` says (a warning).
+    ``progress(cell)`` is called as each cell finishes. Returns the policy's cells, then the
+    random ones, each sorted by (task, N_sv).
+    """
+    n_svs, tasks = [int(n) for n in n_svs], [int(t) for t in tasks]
+    if not 1 <= int(episodes) <= 1000:
+        raise ValueError(f"episodes must be in 1..1000 per cell, got {episodes}")
+    if int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    check_cells(map_id, n_svs, tasks)
+    spec, _, cfg = resolve_policy(policy, env_config)
+    cells = [(t, n) for t in tasks for n in n_svs]
+    jobs = [(spec, cfg, map_id, t, n, int(episodes), mpc_solver) for t, n in cells]
+    results: list[CellResult] = []
+    if random_row:
+        for t, n in cells:
+            key = json.dumps([map_id, cfg.to_dict(), t, n, int(episodes), mpc_solver, int(random_seed)])
+            if key in _RANDOM_CACHE:
+                results.append(_RANDOM_CACHE[key])
+            else:
+                jobs.append(((RANDOM, int(random_seed)), cfg, map_id, t, n, int(episodes), mpc_solver))
+
+    def collect(r: tuple) -> None:
+        cell = CellResult(r[1], r[2], r[3], r[4], r[0])
+        if cell.policy == RANDOM:
+            _RANDOM_CACHE[json.dumps([map_id, cfg.to_dict(), cell.task, cell.n_sv, int(episodes), mpc_solver,
+                                      int(random_seed)])] = cell
+        results.append(cell)
+        if progress:
+            progress(cell)
+
+    for cached in list(results):
+        if progress:
+            progress(cached)
+    if workers > 1 and spec[0] == "object":
+        try:
+            pickle.dumps(spec[1])
+        except Exception as exc:  # noqa: BLE001 - any pickling failure means: not across processes
+            warnings.warn(f"the policy object cannot be sent to worker processes ({type(exc).__name__}: {exc}); "
+                          "evaluating in this process", RuntimeWarning, stacklevel=2)
+            workers = 1
+    if workers <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            try:
+                r = _run_cell(job)
+            except Exception as exc:  # noqa: BLE001 - the same error as a worker's
+                err = _job_error(job, exc)
+                if err[0] == "checkpoint":
+                    raise CheckpointError(err[1], err[2]) from None
+                raise EvaluationError(err[1]) from exc
+            collect(r)
+    else:
+        _run_parallel(jobs, int(workers), collect)
+    results.sort(key=lambda c: (c.policy != POLICY, c.task, c.n_sv))
     return results
 
 
+# ------------------------------------------------------------------ tables
+def _row(by: Mapping, t: int, n_svs: list[int]) -> list[str]:
+    cells = []
+    for n in n_svs:
+        c = by.get((t, n))
+        cells.append("–" if c is None else f"{c.pct('success'):.0f} / {c.pct('collision'):.0f} / {c.pct('timeout'):.0f}")
+    return cells
+
+
 def to_markdown(results: list[CellResult], title: str = "") -> str:
-    """Table II layout: rows = task, column groups = N_sv, S / C / TO in percent."""
+    """Table II layout: rows = task, column groups = N_sv, S / C / TO in percent; each task's
+    random-policy row (when the results hold one) right under its row."""
+    mine = [c for c in results if c.policy != RANDOM]
+    rand = {(c.task, c.n_sv): c for c in results if c.policy == RANDOM}
     n_svs = sorted({c.n_sv for c in results})
-    by = {(c.task, c.n_sv): c for c in results}
+    by = {(c.task, c.n_sv): c for c in mine}
     head = "| task | " + " | ".join(f"N_sv={n} S / C / TO (%)" for n in n_svs) + " |"
     sep = "|---|" + "---|" * len(n_svs)
     lines = ([f"**{title}**", ""] if title else []) + [head, sep]
     for t in sorted({c.task for c in results}):
-        cells = []
-        for n in n_svs:
-            c = by.get((t, n))
-            cells.append("–" if c is None else f"{c.pct('success'):.0f} / {c.pct('collision'):.0f} / {c.pct('timeout'):.0f}")
-        lines.append(f"| {TASKS[t]} | " + " | ".join(cells) + " |")
+        if any(k[0] == t for k in by) or not rand:
+            lines.append(f"| {TASKS[t]} | " + " | ".join(_row(by, t, n_svs)) + " |")
+        if any(k[0] == t for k in rand):
+            lines.append(f"| {TASKS[t]}, random policy | " + " | ".join(_row(rand, t, n_svs)) + " |")
+    if rand:
+        lines += ["", "random policy: uniform random actions on the same scenario seeds (the floor)."]
     return "\n".join(lines) + "\n"
 
 
@@ -113,9 +398,14 @@ def to_csv(results: list[CellResult]) -> str:
 
 
 def write_outputs(results: list[CellResult], out_prefix: str | Path, title: str = "") -> tuple[Path, Path]:
+    """OUT.md (the table, random rows included) and OUT.csv (the policy's cells, one row per
+    cell); the random policy's cells, if any, go to OUT_random.csv in the same layout."""
     out_prefix = Path(out_prefix)
     out_prefix.parent.mkdir(parents=True, exist_ok=True)
     md, cs = out_prefix.with_suffix(".md"), out_prefix.with_suffix(".csv")
     md.write_text(to_markdown(results, title))
-    cs.write_text(to_csv(results))
+    cs.write_text(to_csv([c for c in results if c.policy != RANDOM]))
+    rand = [c for c in results if c.policy == RANDOM]
+    if rand:
+        out_prefix.with_name(out_prefix.name + "_random").with_suffix(".csv").write_text(to_csv(rand))
     return md, cs

@@ -48,6 +48,29 @@ def rolling_success(recs: list[dict], window: int = 200, n_sv: int | None = None
     return ep, rate
 
 
+def training_wall_s(recs: list[dict]) -> tuple[float, int]:
+    """(training wall-clock over the whole run, number of segments). Each ``bimacppo-train``
+    invocation (the first and every ``--resume``) restarts ``wall_s`` at 0, so a record whose
+    ``wall_s`` is below its predecessor's starts a new segment and the run's time is the sum of
+    each segment's last ``wall_s``. A resumed segment whose first episode took longer than the
+    whole previous segment is not told apart (and its time is then undercounted). NaN if no
+    record has ``wall_s``."""
+    total, segments, last = 0.0, 0, None
+    for r in recs:
+        w = r.get("wall_s")
+        if w is None:
+            continue
+        w = float(w)
+        if last is None or w < last:
+            if last is not None:
+                total += last
+            segments += 1
+        last = w
+    if last is None:
+        return float("nan"), 0
+    return total + last, segments
+
+
 def summary(recs: list[dict]) -> dict:
     last = recs[-min(500, len(recs)):]
     by = {}
@@ -55,8 +78,9 @@ def summary(recs: list[dict]) -> dict:
         sub = [r for r in last if r["n_sv"] == i]
         if sub:
             by[i] = sum(r["outcome"] == "success" for r in sub) / len(sub)
-    wall = float(recs[-1].get("wall_s", float("nan")))
+    wall, segments = training_wall_s(recs)
     return {"episodes": recs[-1]["episode"], "env_steps": recs[-1].get("env_steps"), "wall_s": wall,
+            "segments": segments,
             "episodes_per_s": recs[-1]["episode"] / wall if wall > 0 else float("nan"),
             "success_last_500_by_nsv": by}
 
@@ -77,11 +101,11 @@ def make_report(run_dirs: list[Path], out: Path, window: int = 200) -> dict:
     first_name, first = next(iter(runs.items()))
     per = {}
     for i in range(4):
-        x, y = rolling_success(first, window // 2, n_sv=i)
+        x, y = rolling_success(first, max(1, window // 2), n_sv=i)
         if len(x):
             per[f"N_sv={i}"] = (x, y, None)
     written.append(plots.plot_curves(per, f"{out}_success_by_nsv.png",
-                                     f"success rate (last {window // 2} episodes of that N_sv)",
+                                     f"success rate (last {max(1, window // 2)} episodes of that N_sv)",
                                      f"{first_name}: success per N_sv"))
     hist = [dict(r["scheduler"], episodes=r["episode"]) for r in first]
     if "target_cluster_weight_0" in hist[0]:
@@ -103,13 +127,16 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", type=Path, help="bimacppo-train run directories")
     p.add_argument("--out", type=Path, required=True, help="output prefix, e.g. docs/img/bimab-s0")
-    p.add_argument("--window", type=int, default=200, help="rolling window (episodes)")
+    p.add_argument("--window", type=int, default=200, help="rolling window (episodes, >= 1)")
     args = p.parse_args(argv)
+    from .cli import fail
+
+    if args.window < 1:
+        return fail(p.prog, f"--window must be >= 1 episode, got {args.window}")
     try:
         res = make_report(args.runs, args.out, args.window)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"bimacppo-report: {exc}", file=sys.stderr)
-        return 2
+    except (OSError, ValueError, KeyError) as exc:
+        return fail(p.prog, exc if not isinstance(exc, KeyError) else f"a history record lacks the key {exc}")
     for f in res["files"]:
         print("wrote", f)
     print(json.dumps(res["summary"], indent=2))

@@ -1,0 +1,186 @@
+"""The evaluation protocol with any policy: files, predict()/act() objects, the random baseline,
+and failures in worker processes (they end the run with one error, never a hang)."""
+import csv
+import os
+import pickle
+
+import numpy as np
+import pytest
+
+from bimacppo_learning import evaluate as ev
+from bimacppo_learning.cli import evaluate_main
+from bimacppo_planner.agent import env_config_of, load_policy, shipped_policy_path
+from bimacppo_planner.decision import EnvConfig
+from bimacppo_planner.policy import CheckpointError
+
+CELL = {"map_id": "dual_lane_4way", "n_svs": [1], "tasks": [1], "episodes": 1}
+
+
+class PredictPolicy:
+    """Stable-Baselines3 style: predict(obs, state=None, episode_start=None, deterministic=False)."""
+
+    def __init__(self, policy):
+        self.policy = policy
+        self.calls = []
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=False):
+        self.calls.append(deterministic)
+        return self.policy.act(obs, deterministic=deterministic), state
+
+
+class Raiser:
+    def act(self, obs):
+        raise RuntimeError("boom in the policy")
+
+
+class Dies:
+    def act(self, obs):
+        os._exit(3)
+
+
+class BadAction:
+    def act(self, obs):
+        return [9, 9, 9]
+
+
+class Unpicklable:
+    def __init__(self, policy):
+        self.act = lambda obs: policy.act(obs)   # a lambda attribute: pickle refuses the object
+
+
+def _outcomes(cells):
+    return [(c.policy, c.task, c.n_sv, dict(c.counts), c.returns) for c in cells]
+
+
+def _one_error_line(err: str, prog: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: "), err
+    return lines[0]
+
+
+@pytest.fixture(autouse=True)
+def fresh_random_cache():
+    ev._RANDOM_CACHE.clear()
+    yield
+    ev._RANDOM_CACHE.clear()
+
+
+def test_an_object_with_predict_or_act_is_evaluated_like_its_file():
+    path = shipped_policy_path()
+    from_file = ev.evaluate(path, workers=1, random_row=False, **CELL)
+    wrapped = PredictPolicy(load_policy(path))
+    # an object carries no env config: it runs on the one given (here the file's, which differs
+    # from the packaged default that an object gets otherwise)
+    cfg = env_config_of(load_policy(path))
+    assert cfg != EnvConfig.load()
+    from_predict = ev.evaluate(wrapped, workers=1, random_row=False, env_config=cfg, **CELL)
+    from_act = ev.evaluate(load_policy(path), workers=1, random_row=False, **CELL)
+    assert _outcomes(from_file) == _outcomes(from_predict) == _outcomes(from_act)
+    assert wrapped.calls and all(wrapped.calls)          # asked for its deterministic action
+    assert [c.policy for c in from_file] == ["policy"]
+
+
+def test_random_row_is_seeded_on_the_same_scenarios_and_shown_in_every_table(tmp_path):
+    res = ev.evaluate(None, workers=2, **CELL)
+    assert [(c.policy, c.task, c.n_sv, c.n) for c in res] == [("policy", 1, 1, 1), ("random", 1, 1, 1)]
+    # the same baseline as evaluating the random policy itself in this process: same seeds and actions
+    ev._RANDOM_CACHE.clear()
+    alone = ev.evaluate(ev.RandomPolicy((5, 5, 3), seed=0), workers=1, random_row=False,
+                        env_config=env_config_of(load_policy(None)), **CELL)
+    assert _outcomes(alone)[0][1:] == _outcomes(res)[1][1:]
+    md = ev.to_markdown(res, "t")
+    assert "| straight |" in md and "| straight, random policy |" in md
+    out = tmp_path / "eval"
+    md_path, csv_path = ev.write_outputs(res, out, "t")
+    assert "random policy" in md_path.read_text()
+    assert [r["task"] for r in csv.DictReader(csv_path.open())] == ["straight"]     # the policy's cells only
+    rand = list(csv.DictReader((tmp_path / "eval_random.csv").open()))
+    assert [(r["task"], r["n_sv"], r["episodes"]) for r in rand] == [("straight", "1", "1")]
+
+
+def test_a_random_policy_differs_by_seed_and_stays_in_its_action_space():
+    a, b = ev.RandomPolicy((5, 5, 3), seed=0), ev.RandomPolicy((5, 5, 3), seed=1)
+    a.begin_episode(7)
+    b.begin_episode(7)
+    xs, ys = np.array([a.act(None) for _ in range(50)]), np.array([b.act(None) for _ in range(50)])
+    assert not np.array_equal(xs, ys)
+    assert xs.min() >= 0 and np.all(xs.max(axis=0) < [5, 5, 3])
+    a.begin_episode(7)
+    np.testing.assert_array_equal(np.array([a.act(None) for _ in range(50)]), xs)
+
+
+def test_an_unpicklable_object_runs_in_this_process():
+    pol = Unpicklable(load_policy(None))
+    with pytest.raises(Exception):
+        pickle.dumps(pol)
+    with pytest.warns(RuntimeWarning, match="in this process"):
+        res = ev.evaluate(pol, workers=2, random_row=False, **{**CELL, "tasks": [0, 1]})
+    assert [(c.task, c.n) for c in res] == [(0, 1), (1, 1)]
+
+
+@pytest.mark.parametrize("policy, match", [
+    (Raiser(), r"policy on (left|straight), N_sv=0: RuntimeError: boom in the policy"),
+    (Dies(), r"worker died \(exit code 3\)"),
+    (BadAction(), r"returned the action \[9, 9, 9\]; expected 3 integers of MultiDiscrete\(\[5, 5, 3\]\)"),
+])
+def test_a_failure_in_a_worker_ends_the_evaluation_with_its_cause(policy, match):
+    with pytest.raises(ev.EvaluationError, match=match):
+        ev.evaluate(policy, "dual_lane_4way", [0], [0, 1], 1, workers=2, random_row=False)
+
+
+def test_a_policy_for_another_observation_size_is_refused_before_any_episode():
+    class SevenInputs:
+        obs_dim = 7
+
+        def act(self, obs):
+            raise AssertionError("never called")
+
+    with pytest.raises(ev.EvaluationError, match="size 7; the env config gives 16"):
+        ev.evaluate(SevenInputs(), workers=1, **CELL)
+    with pytest.raises(TypeError, match="not a policy"):
+        ev.evaluate(object(), workers=1, **CELL)
+
+
+def test_cli_a_checkpoint_error_in_a_worker_is_one_error_line(monkeypatch, tmp_path, capsys):
+    """A policy file that is gone by the time the workers load it: the error crosses the process
+    boundary and the command ends with exit status 2 (it used to wait forever)."""
+    gone = tmp_path / "gone.pt"
+    real = ev.resolve_policy
+
+    def resolve(policy, env_config=None):
+        _, loaded, cfg = real(None, env_config)
+        return ("path", str(gone)), loaded, cfg
+
+    monkeypatch.setattr(ev, "resolve_policy", resolve)
+    rc = evaluate_main(["--episodes", "1", "--n-sv", "0", "--tasks", "left", "straight", "--workers", "2",
+                        "--no-random-row"])
+    assert rc == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-evaluate")
+    assert line == f"bimacppo-evaluate: error: {gone}: no such file"
+
+
+def test_cli_without_a_policy_evaluates_the_shipped_one_beside_the_random_row(capsys):
+    assert evaluate_main(["--episodes", "1", "--n-sv", "2", "--tasks", "right", "--workers", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "| right |" in out and "| right, random policy |" in out
+    assert evaluate_main(["--episodes", "1", "--n-sv", "2", "--tasks", "right", "--workers", "1",
+                          "--no-random-row"]) == 0
+    out = capsys.readouterr().out
+    assert "| right |" in out and "random" not in out
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--n-sv", "7"], "N_sv=7 impossible on map 'dual_lane_4way' (0..3)"),
+    (["--map", "three_lane_straight"], "has no task 'left'"),
+    (["--episodes", "0"], "--episodes must be in 1..1000"),
+    (["--workers", "0"], "--workers must be >= 1"),
+    (["/nonexistent/policy.pt"], "/nonexistent/policy.pt: no such file"),
+])
+def test_cli_refusals_are_one_error_line(argv, says, capsys):
+    assert evaluate_main(argv) == 2
+    assert says in _one_error_line(capsys.readouterr().err, "bimacppo-evaluate")
+
+
+def test_checkpoint_error_survives_pickling():
+    e = pickle.loads(pickle.dumps(CheckpointError("/x/p.pt", "no such file")))
+    assert (type(e), e.path, e.problem, str(e)) == (CheckpointError, "/x/p.pt", "no such file", "/x/p.pt: no such file")
