@@ -140,6 +140,9 @@ def test_resume_after_kill_continues_counter_and_scheduler(tmp_path):
     assert counts_at_ckpt.sum() == n0
     assert sched2.counts.sum() == 100 and np.all(sched2.counts >= counts_at_ckpt)
     assert recs[n0]["env_steps"] > saved["counters"]["env_steps"]
+    # the clock continues across the resume: wall_s never drops, so the last record is the run's time
+    walls = [r["wall_s"] for r in recs]
+    assert walls == sorted(walls) and walls[n0] >= walls[n0 - 1]
     # resuming a finished run is a no-op
     res2 = Trainer(ToyIntersectionEnv, ToyScheduler(), tmp_path, p, t).train(episodes=100, resume=True)
     assert res2.episodes == 100 and len(history(tmp_path)) == 100

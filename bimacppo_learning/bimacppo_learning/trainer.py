@@ -93,6 +93,7 @@ class Trainer:
         self.last_checkpoint: pathlib.Path | None = None
         self._last_ckpt_episodes = 0
         self.timing = {"env": 0.0, "policy": 0.0, "update": 0.0, "total": 0.0}
+        self._wall_offset = 0.0      # wall_s of the last kept episode when resuming
 
     # ------------------------------------------------------------------ public
     def train(self, episodes: int, resume: bool = False) -> TrainResult:
@@ -202,14 +203,18 @@ class Trainer:
         log.info("resumed from %s at episode %d", path, self.episodes)
 
     def _truncate_history(self, episodes: int) -> None:
-        """Drop records of episodes after the checkpoint: they will be replayed."""
+        """Drop records of episodes after the checkpoint: they will be replayed. The kept
+        records' last ``wall_s`` becomes the clock's offset, so ``wall_s`` counts the training
+        time of the whole run across resumes (episodes/s stay comparable)."""
         kept = []
+        self._wall_offset = 0.0
         if self.history_path.exists():
             for line in self.history_path.read_text().splitlines():
                 if line.strip():
                     rec = json.loads(line)
                     if rec["episode"] <= episodes:
                         kept.append(line)
+                        self._wall_offset = float(rec.get("wall_s", self._wall_offset))
         tmp = self.history_path.with_suffix(".jsonl.tmp")
         tmp.write_text("".join(k + "\n" for k in kept))
         os.replace(tmp, self.history_path)
@@ -233,7 +238,7 @@ class Trainer:
         slots: list[dict] = [d[0] for d in draws]
         obs = reset_each(venv, [d[1] for d in draws], [d[2] for d in draws])
         hist = self.history_path.open("a")
-        t0 = time.monotonic()
+        t0 = time.monotonic() - self._wall_offset
         tm = self.timing
         p0 = time.perf_counter()
         try:
