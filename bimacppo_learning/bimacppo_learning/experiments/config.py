@@ -3,7 +3,7 @@ validated key by key into frozen dataclasses; the layout of every output path li
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -35,6 +35,7 @@ class TrainSection:
     ppo_config: str | None
     poll_s: float
     env_config: str | None = None
+    num_cpus: int = 2
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,7 @@ class EvalSection:
     tasks: tuple
     workers: int
     reference_drivers: tuple
+    num_cpus: int = 2
 
 
 @dataclass(frozen=True)
@@ -98,6 +100,16 @@ class ExperimentConfig:
     def eval_maps(self) -> list[str]:
         return [self.train_map] + ([self.zero_shot_map] if self.zero_shot_map else [])
 
+    def resolved(self) -> "ExperimentConfig":
+        """The same config with absolute paths: what the Ray tasks get, since a worker (on
+        another node, or a process that changed directory) must find the same files."""
+        def absolute(p):
+            return None if p is None else os.path.abspath(p)
+
+        t = replace(self.train, ppo_config=absolute(self.train.ppo_config), env_config=absolute(self.train.env_config))
+        return replace(self, runs_dir=absolute(self.runs_dir), results_md=absolute(self.results_md),
+                       img_prefix=absolute(self.img_prefix), train=t)
+
 
 SCHEMA: dict[str, Any] = {
     "methods": items(choice(CURRICULA)),
@@ -108,11 +120,12 @@ SCHEMA: dict[str, Any] = {
     "runs_dir": text(),
     "results_md": text(),
     "img_prefix": text(),
-    "train": {"num_envs": integer(1, 64), "vector": choice(("async", "sync")), "mpc": choice(("fast", "ipopt")),
-              "ppo_config": text(optional=True), "poll_s": number(0.0, lo_open=True),
-              "env_config": text(optional=True)},
+    "train": {"num_envs": integer(1, 64), "vector": choice(("batched", "async", "sync")),
+              "mpc": choice(("fast", "ipopt")), "ppo_config": text(optional=True),
+              "poll_s": number(0.0, lo_open=True), "env_config": text(optional=True), "num_cpus": integer(1, 256)},
     "evaluation": {"episodes": integer(1, 1000), "n_sv": items(integer(0, 3)), "tasks": items(choice(TASKS)),
-                   "workers": integer(1, 64), "reference_drivers": items(choice(DRIVERS), nonempty=False)},
+                   "workers": integer(1, 64), "reference_drivers": items(choice(DRIVERS), nonempty=False),
+                   "num_cpus": integer(1, 256)},
     "overtake": {"map": choice(MAPS), "source_method": choice(CURRICULA), "curriculum": choice(CURRICULA),
                  "n_slow_max": integer(0, 3), "episodes": integer(1), "seed": integer(0),
                  "test_episodes": integer(1, 1000), "test_n_sv": integer(0, 3)},

@@ -1,5 +1,5 @@
 """The overtaking step (paper §IV-C): fine-tune the best source seed on the three-lane road
-with slow SVs, then the fixed-seed tests."""
+with slow SVs, then the fixed-seed tests; skipped while its test.json is still valid."""
 from __future__ import annotations
 
 import functools
@@ -13,6 +13,7 @@ import numpy as np
 from bimacppo_sim import TASKS
 
 from .config import OUTCOMES, ExperimentConfig, ExperimentError
+from .pool import Cluster, Job
 from .runs import has_checkpoint, last_episode, read_eval_csv, read_history, run_status
 from .traffic import draw_n_slow, make_overtake_env
 
@@ -41,35 +42,62 @@ def best_source_seed(cfg: ExperimentConfig) -> tuple[int, str]:
     return s, f"best training success over the last {cfg.report.window} episodes ({100 * tail[s]:.1f}%; not evaluated)"
 
 
-def overtake(cfg: ExperimentConfig, echo: Callable[[str], None] = print) -> dict:
-    """Fine-tune the best source seed on the overtaking road, then the fixed-seed tests."""
+def test_is_fresh(cfg: ExperimentConfig, out: Path) -> bool:
+    """A cached test.json counts if it is newer than the fine-tuned policy and has the test size."""
+    o, test_path, policy = cfg.overtake, out / "test.json", out / "policy.pt"
+    if not (test_path.is_file() and policy.is_file()) or test_path.stat().st_mtime <= policy.stat().st_mtime:
+        return False
+    try:
+        res = json.loads(test_path.read_text())
+    except ValueError:
+        return False
+    return isinstance(res, dict) and res.get("episodes") == o.test_episodes and res.get("n_sv") == o.test_n_sv
+
+
+def overtake_run(cfg: ExperimentConfig, source: str, seed: int, why: str, ckpt: str, out: str) -> str:
+    """In the Ray worker: the fine-tune (unless it has its budget and policy) and the tests."""
     from bimacppo_planner.agent import env_config_of, load_policy
+
+    o, out = cfg.overtake, Path(out)
+    if last_episode(out) >= o.episodes and (out / "policy.pt").is_file():
+        print(f"fine-tuned policy {out / 'policy.pt'} exists, not retrained", flush=True)
+    else:
+        print(f"fine-tuning {o.source_method}-s{seed} ({why}) from {ckpt}", flush=True)
+        finetune(cfg, Path(ckpt), env_config_of(load_policy(Path(source) / "policy.pt")), out)
+    res = overtake_test(cfg, out / "policy.pt")
+    res.update(source=f"{o.source_method}-s{seed}", source_reason=why, init_checkpoint=str(ckpt))
+    (out / "test.json").write_text(json.dumps(res, indent=2))
+    return f"{res['success_pct']:.0f}% success over {res['episodes']} tests -> {out / 'test.json'}"
+
+
+def overtake(cfg: ExperimentConfig, echo: Callable[[str], None] = print, cluster: Cluster | None = None) -> dict | None:
+    """Fine-tune the best source seed on the overtaking road, then the fixed-seed tests, as one
+    Ray task (``train.num_cpus`` CPUs; log ``<finetune dir>/overtake.log``). Returns the tests'
+    result, None if the task failed (reported on one line)."""
     from ..checkpoint import latest_checkpoint
 
     o = cfg.overtake
-    seed, why = best_source_seed(cfg)
-    src = cfg.run_dir(o.source_method, seed)
+    absolute = cfg.resolved()
+    seed, why = best_source_seed(absolute)
+    src = absolute.run_dir(o.source_method, seed)
     ckpt = latest_checkpoint(src / "checkpoints") if (src / "checkpoints").is_dir() else None
     if ckpt is None:
         raise ExperimentError(f"{src}: no training checkpoint in checkpoints/ to fine-tune from")
-    out = cfg.overtake_dir(seed)
-    echo(f"overtaking: fine-tuning {o.source_method}-s{seed} ({why}) from {ckpt}")
-    if last_episode(out) >= o.episodes and (out / "policy.pt").is_file():
-        echo(f"overtaking: fine-tuned policy {out / 'policy.pt'} exists, skipped")
-    else:
-        finetune(cfg, ckpt, env_config_of(load_policy(src / "policy.pt")), out)
-    test_path = out / "test.json"
-    policy = out / "policy.pt"
-    if test_path.is_file() and test_path.stat().st_mtime > policy.stat().st_mtime:
-        res = json.loads(test_path.read_text())
-        if res.get("episodes") == o.test_episodes and res.get("n_sv") == o.test_n_sv:
-            echo(f"overtaking: cached {test_path}")
-            return res
-    res = overtake_test(cfg, policy)
-    res.update(source=f"{o.source_method}-s{seed}", source_reason=why, init_checkpoint=str(ckpt))
-    test_path.write_text(json.dumps(res, indent=2))
-    echo(f"overtaking: {res['success_pct']:.0f}% success over {res['episodes']} tests -> {test_path}")
-    return res
+    out = absolute.overtake_dir(seed)
+    if test_is_fresh(cfg, out):
+        echo(f"overtaking: cached {out / 'test.json'}")
+        return json.loads((out / "test.json").read_text())
+    echo(f"overtaking: {o.source_method}-s{seed} ({why}), from {ckpt}")
+    kwargs = {"cfg": absolute, "source": str(src), "seed": seed, "why": why, "ckpt": str(ckpt), "out": str(out)}
+    own = cluster is None
+    cluster = cluster or Cluster()
+    try:
+        [res] = cluster.run([Job("overtaking", overtake_run, kwargs, out / "overtake.log", cfg.train.num_cpus)],
+                            "overtaking", echo, cfg.train.poll_s)
+    finally:
+        if own:
+            cluster.close()
+    return json.loads((out / "test.json").read_text()) if res.ok else None
 
 
 def finetune(cfg: ExperimentConfig, ckpt: Path, env_cfg, out: Path) -> None:

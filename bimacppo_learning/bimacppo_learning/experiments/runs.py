@@ -1,9 +1,17 @@
-"""What is already on disk: a run's history and status, its checkpoints, and whether a cached
-evaluation CSV still holds for the current policy and protocol. Every step reads these to skip
-what is done."""
+"""What is already on disk: a run's history and status, its checkpoints, whether it was trained
+with this config's settings, and whether a cached evaluation CSV still holds for the current
+policy and protocol. Every step reads these to skip what is done and redo nothing that is.
+
+A run counts as done when its history has the episode budget, ``policy.pt`` exists and its
+settings (``experiment.json``, written when the grid starts it; else the ``run.json`` that
+``bimacppo-train`` writes) match the config's: curriculum, seed, map, NMPC solver, env config
+and PPO section. The budget is not a setting: raising ``episodes`` resumes finished runs.
+A run directory with other settings is never overwritten: that run fails with the keys that
+differ."""
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import os
 from dataclasses import dataclass
@@ -68,6 +76,62 @@ def has_checkpoint(run_dir: str | os.PathLike) -> bool:
     return d.is_dir() and latest_checkpoint(d) is not None
 
 
+SETTINGS_FILE = "experiment.json"
+#: the keys of run.json (bimacppo-train's record) that are settings, for runs without experiment.json
+RUN_JSON_KEYS = ("curriculum", "seed", "map", "mpc", "env_config")
+
+
+@functools.lru_cache(maxsize=16)
+def _shared_settings(env_config: str | None, ppo_config: str | None, stamp: tuple) -> str:
+    from bimacppo_planner.decision import ConfigError, EnvConfig
+
+    from ..ppo_config import config_to_dict, load_config
+
+    try:
+        env = EnvConfig.load(env_config).to_dict()
+        pcfg, _ = load_config(ppo_config)
+    except (ConfigError, ValueError, OSError) as exc:
+        raise ExperimentError(str(exc)) from None
+    return json.dumps({"env_config": env, "ppo": config_to_dict(pcfg)["ppo"]})
+
+
+def _mtime(path: str | None) -> int | None:
+    try:
+        return None if path is None else os.stat(path).st_mtime_ns
+    except OSError:
+        return None
+
+
+def run_settings(cfg: ExperimentConfig, method: str, seed: int) -> dict:
+    """What a run of this grid is trained with (JSON types), as compared with what is on disk."""
+    t = cfg.train
+    shared = json.loads(_shared_settings(t.env_config, t.ppo_config, (_mtime(t.env_config), _mtime(t.ppo_config))))
+    return {"curriculum": method, "seed": seed, "map": cfg.train_map, "mpc": t.mpc, **shared}
+
+
+def settings_mismatch(run_dir: str | os.PathLike, expected: dict) -> list[str]:
+    """The setting keys whose recorded value differs from ``expected`` (empty: nothing recorded
+    yet, or everything matches)."""
+    d = Path(run_dir)
+    for name, keys in ((SETTINGS_FILE, tuple(expected)), ("run.json", RUN_JSON_KEYS)):
+        try:
+            have = json.loads((d / name).read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(have, dict):
+            return [f"{name} is not a JSON object"]
+        return [k for k in keys if k in expected and have.get(k) != expected[k]]
+    return []
+
+
+def write_settings(run_dir: str | os.PathLike, settings: dict) -> None:
+    d = Path(run_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    tmp = d / f".{SETTINGS_FILE}.tmp"
+    tmp.write_text(json.dumps(settings, indent=2, sort_keys=True))
+    os.replace(tmp, d / SETTINGS_FILE)
+
+
 @dataclass(frozen=True)
 class RunStatus:
     method: str
@@ -75,13 +139,16 @@ class RunStatus:
     run_dir: Path
     episodes: int          # recorded in history.jsonl
     budget: int
+    mismatch: tuple = ()   # setting keys that differ from the config's
 
     @property
     def done(self) -> bool:
-        return self.episodes >= self.budget and (self.run_dir / "policy.pt").is_file()
+        return not self.mismatch and self.episodes >= self.budget and (self.run_dir / "policy.pt").is_file()
 
     @property
     def state(self) -> str:
+        if self.mismatch:
+            return "other settings"
         if self.done:
             return "done"
         return "partial" if self.episodes or self.run_dir.exists() else "missing"
@@ -89,7 +156,8 @@ class RunStatus:
 
 def run_status(cfg: ExperimentConfig, method: str, seed: int) -> RunStatus:
     d = cfg.run_dir(method, seed)
-    return RunStatus(method, seed, d, last_episode(d), cfg.episodes)
+    mismatch = tuple(settings_mismatch(d, run_settings(cfg, method, seed))) if d.is_dir() else ()
+    return RunStatus(method, seed, d, last_episode(d), cfg.episodes, mismatch)
 
 
 def read_eval_csv(path: str | os.PathLike) -> dict[tuple[int, int], tuple[float, float, float, int]]:
