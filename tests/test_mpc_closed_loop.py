@@ -114,6 +114,7 @@ def test_solve_batch_matches_independent_solves_and_keeps_per_slot_warm_starts()
         single.reset()
         single._warm1[0] = b1.U[i]
         single._has1[0] = True
+        single._ref1[0] = Xr[i]
         r = single.solve(X1[i], Xr[i], b1.u[i])
         assert np.allclose(r.U, b2.U[i], atol=1e-9)
     # a different batch size starts fresh slots instead of mixing them up

@@ -105,3 +105,29 @@ def test_thread_settings_are_validated():
         CFG.replace(fast={"parallel_min_batch": 0})
     with pytest.raises(ValueError, match="fast.steer_bound_start"):
         CFG.replace(fast={"steer_bound_start": "yes"})
+
+
+def test_the_gate_runs_the_second_start_only_where_it_can_matter():
+    gated = make_controller(CFG, "fast")
+    assert CFG.fast.steer_bound_gate
+    hard = gated.solve(X0, REF, UPREV)            # new reference, steering held on its bound
+    assert hard.ok and hard.starts == 2
+    easy = gated.solve([0.0, 0.0, 4.0, 0.0], [12.0, 0.5, 4.0, 0.0], [0.0, 0.0])
+    assert easy.ok and easy.starts == 1          # gentle steering: one start
+    always = make_controller(CFG.replace(fast={"steer_bound_gate": False}), "fast")
+    assert always.solve([0.0, 0.0, 4.0, 0.0], [12.0, 0.5, 4.0, 0.0], [0.0, 0.0]).starts == 2
+    assert make_controller(ONE_START, "fast").solve(X0, REF, UPREV).starts == 1
+    assert make_controller(CFG, "fast").solve([np.nan, 0, 0, 0], REF, UPREV).starts == 0
+    with pytest.raises(ValueError, match="fast.steer_bound_gate"):
+        CFG.replace(fast={"steer_bound_gate": 1})
+
+
+def test_the_gate_sees_a_new_reference_per_slot_and_after_reset():
+    ctrl = make_controller(CFG, "fast")
+    X0b, Xrb, Upb = np.tile(X0, (2, 1)), np.tile(REF, (2, 1)), np.tile(UPREV, (2, 1))
+    first = ctrl.solve_batch(X0b, Xrb, Upb)
+    assert first.starts.tolist() == [2, 2]
+    ctrl.reset(slots=[1])                          # slot 1 restarts: its reference is new again
+    again = ctrl.solve_batch(X0b, Xrb, Upb)
+    assert again.starts[1] == 2
+    assert np.array_equal(again.U[1], first.U[1]) and again.cost[1] == first.cost[1]

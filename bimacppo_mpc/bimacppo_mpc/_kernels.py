@@ -15,9 +15,10 @@ line-search SQP on it:
   function is the cost itself and bounds hold exactly up to rounding, which a final
   forward clamp removes.
 
-Each problem is solved from two starts and the cheaper result is kept (see
-``steer_bound_start``): the closed-loop problems have several strict local minima, and a
-warm-started chain otherwise stays in whichever one it entered first.
+A problem can be solved from a second start and the cheaper result kept (see
+``steer_bound_start`` and its gate ``second_start_pays``): the closed-loop problems have
+several strict local minima, and a warm-started chain otherwise stays in whichever one it
+entered first.
 
 Everything is compiled with ``cache=True`` so a fresh process pays the compile once per
 machine, not per run. The batch kernel has a serial and a ``prange`` variant around the
@@ -42,8 +43,8 @@ ST_NONFINITE_RESULT = 8
 # indices into the packed parameter vector P (built by controller.pack_params)
 P_L, P_DT, P_AMIN, P_AMAX, P_DMIN, P_DMAX, P_VMIN, P_VMAX = 0, 1, 2, 3, 4, 5, 6, 7
 P_QX, P_QU, P_QDU = 8, 12, 14
-P_BRAKE, P_RELAX, P_TOL, P_EXACT, P_STEER_START = 16, 17, 18, 19, 20
-P_SIZE = 21
+P_BRAKE, P_RELAX, P_TOL, P_EXACT, P_STEER_START, P_STEER_GATE = 16, 17, 18, 19, 20, 21
+P_SIZE = 22
 
 # numerical constants of the linear algebra (not tuning knobs: scale-free guards)
 _EPS_PIVOT = 1e-12       # relative pivot below which a working-set row is dependent
@@ -62,6 +63,18 @@ _SHIFT_BISECT = 4        # ... then this many geometric bisection steps tighten 
 # costs are the same minimum reached to within the convergence tolerance, and keeping the
 # first start's copy keeps the result a smooth function of the data (warm-start chains)
 _SAME_MINIMUM = 1e-6
+# the gate of the second start (fast.steer_bound_gate, docs/mpc.md "Two starts"): it runs when
+# the first solution holds the steering on a bound over at least _GATE_SAT_NUM/_GATE_SAT_DEN of
+# the horizon and the reference is new (changed, or no warm start), or when that share is at
+# least _GATE_PASS_NUM/_GATE_SAT_DEN and the predicted path comes closest to the reference point
+# by step _GATE_KMIN_NUM/_GATE_KMIN_DEN of the horizon (the car passes it: the case with
+# several minima). Integer ratios keep the test exact for every N.
+_GATE_SAT_NUM = 2
+_GATE_PASS_NUM = 3
+_GATE_SAT_DEN = 5
+_GATE_KMIN_NUM = 3
+_GATE_KMIN_DEN = 4
+_STEER_ON_BOUND = 1e-9   # |delta - bound| below this counts as on the bound
 
 
 @njit(cache=True)
@@ -171,6 +184,26 @@ def build_constraints(v0, vlo, vhi, P, G, h):
             G[2 * n + N + k, 2 * j] = -dt
         h[2 * n + k] = vhi[k] - v0
         h[2 * n + N + k] = v0 - vlo[k]
+
+
+@njit(cache=True)
+def slacks(z, h, dt, b):
+    """b = h - G z for the rows of build_constraints, skipping their zeros (unit rows, speed
+    rows over the accelerations): the nonzero products in the dense product's order."""
+    n = z.size
+    N = n // 2
+    for j in range(n):
+        b[j] = h[j] - z[j]
+        b[n + j] = h[n + j] + z[j]
+    for k in range(N):
+        hi = h[2 * n + k]
+        lo = h[2 * n + N + k]
+        for j in range(k + 1):
+            hi -= dt * z[2 * j]
+            lo -= -dt * z[2 * j]
+        b[2 * n + k] = hi
+        b[2 * n + N + k] = lo
+    return b
 
 
 @njit(cache=True)
@@ -416,8 +449,10 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws):
     tmp = ws[4]
     r = ws[5]
     lam = ws[6]
-    slack = np.empty(m)
-    Gs = np.empty(m)
+    slack = ws[7]
+    Gs = ws[8]
+    N = n // 2
+    dt = G[2 * n, 0]
     for i in range(n):
         p[i] = 0.0
     for i in range(m):
@@ -470,14 +505,20 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws):
         alpha = 1.0
         block = -1
         if snorm > 0.0:
+            # G s by the rows' structure (unit rows, prefix sums of dt * s_a)
+            for j in range(n):
+                Gs[j] = s[j]
+                Gs[n + j] = -s[j]
+            acc = 0.0
+            for k in range(N):
+                acc += dt * s[2 * k]
+                Gs[2 * n + k] = acc
+                Gs[2 * n + N + k] = -acc
             for c in range(m):
                 if inW[c]:
                     Gs[c] = 0.0
                     continue
-                t = 0.0
-                for i in range(n):
-                    t += G[c, i] * s[i]
-                Gs[c] = t
+                t = Gs[c]
                 if t > _EPS_DIR:
                     ratio = slack[c] / t
                     if ratio < alpha:
@@ -587,51 +628,45 @@ def convexify(H, Lh, G, b, H0, dmax, Hgn):
 
 
 @njit(cache=True)
+def sqp_workspace(N):
+    """The arrays of one SQP (allocated once per problem and shared by its starts)."""
+    n = 2 * N
+    m = 2 * n + 2 * N
+    return (np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4)), np.empty(n), np.empty((n, n)),
+            np.zeros((n, n)), np.empty((m, n)), np.empty(m), np.empty(m), np.empty(n), np.empty(n),
+            np.empty(n, dtype=np.int64), np.zeros(m, dtype=np.bool_), np.empty(n), np.empty((n, n)),
+            np.zeros((n, n)), np.empty((n, n)), np.empty((9, max(n, m))), np.empty((N + 1, 4)),
+            np.empty((n, n)), np.empty((n, n)))
+
+
+@njit(cache=True)
 def sqp(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X):
     """Solve one problem from the feasible initial guess z (overwritten). Returns (status, cost, iters)."""
+    wk = sqp_workspace(z.size // 2)
+    build_constraints(x0[2], vlo, vhi, P, wk[5], wk[6])
+    return sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X, wk)
+
+
+@njit(cache=True)
+def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X, wk):
+    """sqp() on the workspace wk of sqp_workspace, whose G, h already hold build_constraints."""
     N = z.size // 2
     n = 2 * N
     m = 2 * n + 2 * N
     exact = P[P_EXACT] > 0.5
     tol = P[P_TOL]
-    S = np.zeros((N + 1, 4, n))
-    lam = np.zeros((N + 1, 4))
-    g = np.empty(n)
-    H = np.empty((n, n))
-    Lh = np.zeros((n, n))
-    G = np.empty((m, n))
-    h = np.empty(m)
-    b = np.empty(m)
-    p = np.empty(n)
-    zt = np.empty(n)
-    W = np.empty(n, dtype=np.int64)
-    inW = np.zeros(m, dtype=np.bool_)
-    lamW = np.empty(n)
-    Y = np.empty((n, n))
-    Ls = np.zeros((n, n))
-    Sm = np.empty((n, n))
-    ws = np.empty((7, max(n, m)))
-    Xt = np.empty((N + 1, 4))
-    H0 = np.empty((n, n))
-    Hgn = np.empty((n, n))
-    build_constraints(x0[2], vlo, vhi, P, G, h)
+    dt = P[P_DT]
+    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn) = wk
+    slacks(z, h, dt, b)
     nW = 0
     for c in range(m):
-        t = h[c]
-        for i in range(n):
-            t -= G[c, i] * z[i]
-        b[c] = t
-        if t <= _EPS_ACTIVE and nW < n:
+        if b[c] <= _EPS_ACTIVE and nW < n:
             W[nW] = c
             nW += 1
     J = 0.0
     for it in range(max_iter):
         J = derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn)
-        for c in range(m):
-            t = h[c]
-            for i in range(n):
-                t -= G[c, i] * z[i]
-            b[c] = t
+        slacks(z, h, dt, b)
         dmax = 0.0
         for i in range(n):
             dmax = max(dmax, abs(H[i, i]))
@@ -784,11 +819,39 @@ def steer_bound_start(x0, xref, uprev, z_from, P, vlo, vhi, z, X):
 
 
 @njit(cache=True)
-def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
-               Uout, Xout, cost, status, iters):
+def second_start_pays(z, X, xref, new_ref, P):
+    """The gate of the second start (constants _GATE_*): True when the first solution z
+    (states X) keeps the steering on a bound over a large share of the horizon and either the
+    reference is new or the predicted path passes the reference point early."""
+    N = z.size // 2
+    on = 0
+    for k in range(N):
+        d = z[2 * k + 1]
+        if d >= P[P_DMAX] - _STEER_ON_BOUND or d <= P[P_DMIN] + _STEER_ON_BOUND:
+            on += 1
+    if on * _GATE_SAT_DEN < _GATE_SAT_NUM * N:
+        return False
+    if new_ref:
+        return True
+    if on * _GATE_SAT_DEN < _GATE_PASS_NUM * N:
+        return False
+    kmin = 0
+    dmin = np.inf
+    for k in range(N + 1):
+        dd = (X[k, 0] - xref[0]) ** 2 + (X[k, 1] - xref[1]) ** 2
+        if dd < dmin:
+            dmin = dd
+            kmin = k
+    return kmin * _GATE_KMIN_DEN <= _GATE_KMIN_NUM * N
+
+
+@njit(cache=True)
+def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter, qp_max_iter,
+               Uout, Xout, cost, status, iters, starts):
     """Problem bi of a batch: checks, one or two starts (the cheaper converged result is
-    kept), warm start and fallback. Touches only slot bi of every array, so slots can run
-    on different threads."""
+    kept), warm start and fallback. Rprev[bi] is the reference of the slot's previous solve
+    (the gate's "new reference"). Touches only slot bi of every array, so slots can run on
+    different threads."""
     N = Uwarm.shape[1]
     n = 2 * N
     x0 = X0[bi]
@@ -799,15 +862,26 @@ def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_ma
     vhi = np.empty(N)
     z = np.empty(n)
     st = prepare(x0, Xref[bi], uprev, P, xr, vlo, vhi)
+    new_ref = not has_warm[bi]
+    for i in range(4):
+        if Xref[bi, i] != Rprev[bi, i]:
+            new_ref = True
+        Rprev[bi, i] = Xref[bi, i]
     it = 0
     J = np.nan
+    starts[bi] = 0
     if st == ST_OK:
+        starts[bi] = 1
         initial_guess(x0, xr, uprev, Uwarm[bi], has_warm[bi], guesses, P, vlo, vhi, z, X)
-        st, J, it = sqp(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X)
-        if P[P_STEER_START] > 0.5 and max_iter > 0:
+        wk = sqp_workspace(N)
+        build_constraints(x0[2], vlo, vhi, P, wk[5], wk[6])
+        st, J, it = sqp_ws(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X, wk)
+        if P[P_STEER_START] > 0.5 and max_iter > 0 and (
+                st != ST_OK or P[P_STEER_GATE] < 0.5 or second_start_pays(z, X, xr, new_ref, P)):
+            starts[bi] = 2
             z2 = np.empty(n)
             steer_bound_start(x0, xr, uprev, z, P, vlo, vhi, z2, X)
-            st2, J2, it2 = sqp(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, X)
+            st2, J2, it2 = sqp_ws(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, X, wk)
             it += it2
             if st2 == ST_OK and (st != ST_OK or J2 < J - _SAME_MINIMUM * (1.0 + abs(J))):
                 st = st2
@@ -854,19 +928,19 @@ def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_ma
 
 
 @njit(cache=True)
-def solve_batch_kernel(X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
-                       Uout, Xout, cost, status, iters):
+def solve_batch_kernel(X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter, qp_max_iter,
+                       Uout, Xout, cost, status, iters, starts):
     """B independent problems on the calling thread; Uwarm/has_warm are the per-slot warm starts (updated here)."""
     for bi in range(X0.shape[0]):
-        solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
-                   Uout, Xout, cost, status, iters)
+        solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter, qp_max_iter,
+                   Uout, Xout, cost, status, iters, starts)
 
 
 @njit(cache=True, parallel=True)
-def solve_batch_parallel(X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
-                         Uout, Xout, cost, status, iters):
+def solve_batch_parallel(X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter, qp_max_iter,
+                         Uout, Xout, cost, status, iters, starts):
     """As solve_batch_kernel, with the slots spread over numba's threads (they share only
     read-only inputs); the same solve_slot runs, so the results are the serial ones."""
     for bi in prange(X0.shape[0]):
-        solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, guesses, P, max_iter, qp_max_iter,
-                   Uout, Xout, cost, status, iters)
+        solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter, qp_max_iter,
+                   Uout, Xout, cost, status, iters, starts)

@@ -154,7 +154,7 @@ def generate_problems(cfg: MPCConfig, bc: BenchConfig, episodes: int, progress=N
 
 # ---------------------------------------------------------------------------- runs
 def solve_all(ctrl, episodes: List[Episode], progress=None):
-    times, costs, oks, iters, us = [], [], [], [], []
+    times, costs, oks, iters, us, starts = [], [], [], [], [], []
     for ep in episodes:
         ctrl.reset()
         for x0, xr, up in zip(ep.X0, ep.Xref, ep.Uprev):
@@ -165,10 +165,11 @@ def solve_all(ctrl, episodes: List[Episode], progress=None):
             oks.append(res.ok)
             iters.append(res.iterations)
             us.append(res.u)
+            starts.append(res.starts)
             if progress is not None:
                 progress.update(1)
     return dict(time=np.array(times), cost=np.array(costs), ok=np.array(oks), iters=np.array(iters),
-                u=np.array(us))
+                u=np.array(us), starts=np.array(starts))
 
 
 def batch_throughput(cfg: MPCConfig, episodes: List[Episode], B: int, steps: int, threads: int = 1) -> float:
@@ -255,6 +256,7 @@ def main(argv=None) -> int:
         ("iterations median / p99 / max", f"{_pct(rf['iters'], 50):.0f} / {_pct(rf['iters'], 99):.0f} / "
          f"{rf['iters'].max()}", f"{_pct(ri['iters'], 50):.0f} / {_pct(ri['iters'], 99):.0f} / "
          f"{ri['iters'].max()}", ""),
+        ("second SQP start run (share of solves)", f"{100.0 * np.mean(rf['starts'] == 2):.1f} %", "", ""),
         ("failures (ok=False)", f"{int((~rf['ok']).sum())}", f"{int((~ri['ok']).sum())}", ""),
         ("process peak RSS after the pass (growth)", f"{rss_f:.0f} MB (+{rss_f - rss0:.0f})",
          f"{rss_i:.0f} MB (+{rss_i - rss_f:.0f})", ""),

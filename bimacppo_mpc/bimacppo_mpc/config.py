@@ -51,12 +51,15 @@ class FastSolverConfig:
     hessian: str
     initial_guesses: tuple
     steer_bound_start: bool
+    steer_bound_gate: bool
     threads: int
     parallel_min_batch: int
 
     def __post_init__(self):
         _check(isinstance(self.steer_bound_start, bool), "fast.steer_bound_start",
                f"must be true or false, got {self.steer_bound_start!r}")
+        _check(isinstance(self.steer_bound_gate, bool), "fast.steer_bound_gate",
+               f"must be true or false, got {self.steer_bound_gate!r}")
         _int_at_least("fast.threads", self.threads, 0)
         _int_at_least("fast.parallel_min_batch", self.parallel_min_batch, 1)
         _int_at_least("fast.max_iter", self.max_iter, 0)

@@ -49,6 +49,7 @@ class MPCResult:
     ok: bool
     solve_time_s: float
     iterations: int = 0
+    starts: int = 1          # SQP starts run (fast solver: 2 when the second start ran; 0 on bad input)
 
 
 @dataclass
@@ -63,6 +64,7 @@ class MPCBatchResult:
     status: List[str]
     solve_time_s: float      # the whole batch
     iterations: np.ndarray   # (B,)
+    starts: Optional[np.ndarray] = None   # (B,) SQP starts run by the fast solver
 
 
 def pack_params(cfg: MPCConfig) -> np.ndarray:
@@ -81,6 +83,7 @@ def pack_params(cfg: MPCConfig) -> np.ndarray:
     P[K.P_TOL] = cfg.fast.tol
     P[K.P_EXACT] = 1.0 if cfg.fast.hessian == "exact" else 0.0
     P[K.P_STEER_START] = 1.0 if cfg.fast.steer_bound_start else 0.0
+    P[K.P_STEER_GATE] = 1.0 if cfg.fast.steer_bound_gate else 0.0
     return P
 
 
@@ -92,6 +95,15 @@ def _as_array(name: str, value, shape) -> np.ndarray:
     if arr.shape != shape:
         raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
     return np.ascontiguousarray(arr)
+
+
+def _vector(name: str, value, size: int) -> np.ndarray:
+    """_as_array for a 1-D vector, without copies or checks beyond the type test when value
+    already is a contiguous float64 array of that size (the common case in a control loop)."""
+    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (size,) \
+            and value.flags.c_contiguous:
+        return value
+    return _as_array(name, value, (size,))
 
 
 def _python_fallback(cfg: MPCConfig, x0: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
@@ -133,18 +145,21 @@ class MPCController:
             return
         self._warm1 = np.zeros((1, self.N, 2))
         self._has1 = np.zeros(1, dtype=np.bool_)
+        self._ref1 = np.zeros((1, 4))          # the reference of each slot's previous solve
         self._warmB = np.zeros((0, self.N, 2))
         self._hasB = np.zeros(0, dtype=np.bool_)
+        self._refB = np.zeros((0, 4))
 
     def solve(self, x0, x_ref, u_prev) -> MPCResult:
         x0 = _as_array("x0", x0, (4,))
         x_ref = _as_array("x_ref", x_ref, (4,))
         u_prev = _as_array("u_prev", u_prev, (2,))
         t0 = time.perf_counter()
-        b = self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1)
+        b = self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1, self._ref1)
         dt = time.perf_counter() - t0
         return MPCResult(u=b.u[0], U=b.U[0], X=b.X[0], cost=float(b.cost[0]), status=b.status[0],
-                         ok=bool(b.ok[0]), solve_time_s=dt, iterations=int(b.iterations[0]))
+                         ok=bool(b.ok[0]), solve_time_s=dt, iterations=int(b.iterations[0]),
+                         starts=int(b.starts[0]))
 
     def solve_batch(self, X0, Xref, Uprev) -> MPCBatchResult:
         """B independent problems; slot i keeps its own warm start while B stays the same."""
@@ -158,22 +173,24 @@ class MPCController:
         if self._warmB.shape[0] != B:
             self._warmB = np.zeros((B, self.N, 2))
             self._hasB = np.zeros(B, dtype=np.bool_)
+            self._refB = np.zeros((B, 4))
         t0 = time.perf_counter()
-        out = self._run(X0, Xref, Uprev, self._warmB, self._hasB)
+        out = self._run(X0, Xref, Uprev, self._warmB, self._hasB, self._refB)
         out.solve_time_s = time.perf_counter() - t0
         return out
 
     # ---------------------------------------------------------------- internals
-    def _run(self, X0, Xref, Uprev, warm, has_warm) -> MPCBatchResult:
+    def _run(self, X0, Xref, Uprev, warm, has_warm, ref_prev) -> MPCBatchResult:
         B = X0.shape[0]
         U = np.zeros((B, self.N, 2))
         X = np.zeros((B, self.N + 1, 4))
         cost = np.full(B, np.nan)
         status = np.zeros(B, dtype=np.int64)
         iters = np.zeros(B, dtype=np.int64)
+        self._starts = starts = np.ones(B, dtype=np.int64)
         texts: Optional[List[str]] = None
         try:
-            texts = self._solve_all(X0, Xref, Uprev, warm, has_warm, U, X, cost, status, iters)
+            texts = self._solve_all(X0, Xref, Uprev, warm, has_warm, ref_prev, U, X, cost, status, iters)
         except Exception as exc:  # the error barrier: a control step never raises
             msg = f"solver_error: {type(exc).__name__}: {exc}"
             texts = [msg] * B
@@ -197,9 +214,9 @@ class MPCController:
             texts[i] = STATUS_TEXT[K.ST_NONFINITE_RESULT]
         U = np.clip(U, lo, hi)
         return MPCBatchResult(u=U[:, 0, :].copy(), U=U, X=X, cost=cost, ok=ok, status=texts,
-                              solve_time_s=0.0, iterations=iters)
+                              solve_time_s=0.0, iterations=iters, starts=starts)
 
-    def _solve_all(self, X0, Xref, Uprev, warm, has_warm, U, X, cost, status, iters):
+    def _solve_all(self, X0, Xref, Uprev, warm, has_warm, ref_prev, U, X, cost, status, iters):
         raise NotImplementedError
 
 
@@ -215,6 +232,8 @@ class FastController(MPCController):
         self._cost1 = np.empty(1)
         self._status1 = np.empty(1, dtype=np.int64)
         self._iters1 = np.empty(1, dtype=np.int64)
+        self._starts1 = np.empty(1, dtype=np.int64)
+        self._max_iter, self._qp_max_iter = cfg.fast.max_iter, cfg.fast.qp_max_iter
         self.set_threads(cfg.fast.threads)
 
     def set_threads(self, threads: int) -> None:
@@ -228,37 +247,39 @@ class FastController(MPCController):
     def solve(self, x0, x_ref, u_prev) -> MPCResult:
         # The same kernel as solve_batch with B = 1, without the batch bookkeeping: at ~0.1 ms per
         # solve the Python around the kernel is a sizeable share of the time.
-        x0 = _as_array("x0", x0, (4,))
-        x_ref = _as_array("x_ref", x_ref, (4,))
-        u_prev = _as_array("u_prev", u_prev, (2,))
+        x0 = _vector("x0", x0, 4)
+        x_ref = _vector("x_ref", x_ref, 4)
+        u_prev = _vector("u_prev", u_prev, 2)
         t0 = time.perf_counter()
         N = self.N
         U = np.empty((1, N, 2))
         X = np.empty((1, N + 1, 4))
-        f = self.cfg.fast
         try:
             K.solve_batch_kernel(x0.reshape(1, 4), x_ref.reshape(1, 4), u_prev.reshape(1, 2), self._warm1,
-                                 self._has1, self.guesses, self.P, f.max_iter, f.qp_max_iter, U, X,
-                                 self._cost1, self._status1, self._iters1)
+                                 self._has1, self._ref1, self.guesses, self.P, self._max_iter, self._qp_max_iter,
+                                 U, X, self._cost1, self._status1, self._iters1, self._starts1)
         except Exception:  # the error barrier of _run turns it into the fallback
-            return self._single(self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1), t0)
+            return self._single(self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1,
+                                          self._ref1), t0)
         a, d = U[0, 0, 0], U[0, 0, 1]
         if not (self._lo[0] <= a <= self._hi[0] and self._lo[1] <= d <= self._hi[1]):   # also catches NaN
-            return self._single(self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1), t0)
+            return self._single(self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1,
+                                          self._ref1), t0)
         st = int(self._status1[0])
         return MPCResult(u=U[0, 0].copy(), U=U[0], X=X[0], cost=float(self._cost1[0]), status=STATUS_TEXT[st],
                          ok=st == K.ST_OK, solve_time_s=time.perf_counter() - t0,
-                         iterations=int(self._iters1[0]))
+                         iterations=int(self._iters1[0]), starts=int(self._starts1[0]))
 
     @staticmethod
     def _single(b: MPCBatchResult, t0: float) -> MPCResult:
         return MPCResult(u=b.u[0], U=b.U[0], X=b.X[0], cost=float(b.cost[0]), status=b.status[0],
-                         ok=bool(b.ok[0]), solve_time_s=time.perf_counter() - t0, iterations=int(b.iterations[0]))
+                         ok=bool(b.ok[0]), solve_time_s=time.perf_counter() - t0, iterations=int(b.iterations[0]),
+                         starts=int(b.starts[0]))
 
-    def _solve_all(self, X0, Xref, Uprev, warm, has_warm, U, X, cost, status, iters):
+    def _solve_all(self, X0, Xref, Uprev, warm, has_warm, ref_prev, U, X, cost, status, iters):
         f = self.cfg.fast
-        args = (X0, Xref, Uprev, warm, has_warm, self.guesses, self.P, f.max_iter, f.qp_max_iter,
-                U, X, cost, status, iters)
+        args = (X0, Xref, Uprev, warm, has_warm, ref_prev, self.guesses, self.P, f.max_iter, f.qp_max_iter,
+                U, X, cost, status, iters, self._starts)
         if X0.shape[0] < f.parallel_min_batch or self.threads == 1:
             K.solve_batch_kernel(*args)
             return None
@@ -318,7 +339,7 @@ class IpoptController(MPCController):
         self._ubx = np.tile([cfg.a_max, cfg.delta_max], N)
         return ca.nlpsol("bimacppo_mpc_ipopt", "ipopt", nlp, opts)
 
-    def _solve_all(self, X0, Xref, Uprev, warm, has_warm, U, X, cost, status, iters):
+    def _solve_all(self, X0, Xref, Uprev, warm, has_warm, ref_prev, U, X, cost, status, iters):
         N = self.N
         P = self.P
         xr = np.empty(4)
