@@ -5,7 +5,6 @@ Training runs in-process (no ROS) on the same core code the nodes wrap; see docs
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import logging
 import sys

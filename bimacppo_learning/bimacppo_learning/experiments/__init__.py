@@ -21,7 +21,7 @@ from .config import (CONFIG_PATH, CURRICULA, DRIVERS, MAPS, METHOD_NAMES, OUTCOM
 from .runs import (RunStatus, eval_is_fresh, has_checkpoint, last_episode, protocol_cells,  # noqa: F401
                    read_eval_csv, read_history, run_settings, run_status, settings_mismatch)
 from .pool import Cluster, Job, Outcome, RunFailed  # noqa: F401
-from .traffic import SlowTraffic, draw_n_slow, make_overtake_env  # noqa: F401
+from .traffic import draw_n_slow, make_overtake_env  # noqa: F401
 from .stats import aggregate_cells, episodes_to_fraction, mean_counts, mean_std_curve, rolling_rate  # noqa: F401
 from .train import train, train_argv  # noqa: F401
 from .evaluation import evaluate_all, evaluate_reference  # noqa: F401

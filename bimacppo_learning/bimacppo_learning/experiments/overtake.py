@@ -2,7 +2,6 @@
 with slow SVs, then the fixed-seed tests; skipped while its test.json is still valid."""
 from __future__ import annotations
 
-import functools
 import json
 from collections import Counter
 from pathlib import Path
@@ -101,8 +100,7 @@ def overtake(cfg: ExperimentConfig, echo: Callable[[str], None] = print, cluster
 
 
 def finetune(cfg: ExperimentConfig, ckpt: Path, env_cfg, out: Path) -> None:
-    """bimacppo-train --init-policy, in-process: the CLI cannot pass the wrapper that folds the
-    tasks and sets n_slow (docs/experiments.md)."""
+    """bimacppo-train --init-policy with slow SVs, in-process (the same Trainer the CLI runs)."""
     from bimacppo_curriculum import make_scheduler
 
     from ..cli import run_meta
@@ -116,7 +114,7 @@ def finetune(cfg: ExperimentConfig, ckpt: Path, env_cfg, out: Path) -> None:
     (out / "run.json").write_text(json.dumps({
         "curriculum": o.curriculum, "episodes": o.episodes, "seed": o.seed, "map": o.map, "mpc": t.mpc,
         "init_policy": str(ckpt), "n_slow_max": o.n_slow_max, "env_config": env_cfg.to_dict()}, indent=2))
-    env_fn = functools.partial(make_overtake_env, o.map, env_cfg, t.mpc, o.n_slow_max)
+    env_fn = make_overtake_env(o.map, env_cfg, t.mpc, o.n_slow_max)
     Trainer(env_fn, sched, out, pcfg, tcfg, agent=load_agent(ckpt),
             run_meta=run_meta(env_cfg, o.curriculum, o.map, o.seed, t.mpc)).train(o.episodes, resume=has_checkpoint(out))
 
@@ -131,8 +129,8 @@ def overtake_test(cfg: ExperimentConfig, policy_path: Path) -> dict:
 
     o = cfg.overtake
     policy = load_policy(policy_path)
-    env = make_overtake_env(o.map, env_config_of(policy), cfg.train.mpc, o.n_slow_max)
-    task = env.unwrapped.tasks[0]
+    env = make_overtake_env(o.map, env_config_of(policy), cfg.train.mpc, o.n_slow_max)()
+    task = env.tasks[0]
     j = TASKS.index(task)
     counts: Counter = Counter()
     slow: Counter = Counter()
