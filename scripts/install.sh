@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create (or update) the project's virtual environment with pinned versions of
-# everything, then install the five bimacppo packages into it in editable mode.
+# everything, then install the six bimacppo packages into it in editable mode.
 #
 #   scripts/install.sh            # venv at ./.venv
 #   VENV=/opt/venv scripts/install.sh
@@ -35,13 +35,13 @@ else
   # compat mode = a .pth path entry per package: the repo root also holds same-named
   # ROS package folders, which an import-hook editable install would lose to.
   "${PIP[@]}" install -q --no-deps --no-build-isolation --config-settings editable_mode=compat \
-    -e "$ROOT/bimacppo_sim" -e "$ROOT/bimacppo_mpc" \
+    -e "$ROOT/bimacppo_common" -e "$ROOT/bimacppo_sim" -e "$ROOT/bimacppo_mpc" \
     -e "$ROOT/bimacppo_curriculum" -e "$ROOT/bimacppo_planner" -e "$ROOT/bimacppo_learning"
   echo "$want" > "$stamp"
 fi
 "$VENV/bin/python" - <<'PY'
 import importlib
-for m in ("rclpy", "casadi", "torch", "gymnasium", "bimacppo_sim", "bimacppo_mpc",
+for m in ("rclpy", "casadi", "torch", "gymnasium", "bimacppo_common", "bimacppo_sim", "bimacppo_mpc",
           "bimacppo_curriculum", "bimacppo_planner", "bimacppo_learning"):
     importlib.import_module(m)
 print(">> environment OK")

@@ -10,6 +10,7 @@ import pytest
 from conftest import REPO
 
 EXECUTABLES = {
+    "bimacppo_common": [],
     "bimacppo_sim": ["world_node", "mcap_recorder", "mcap_player", "bimacppo-sim"],
     "bimacppo_mpc": ["controller_node"],
     "bimacppo_curriculum": ["curriculum_node"],
