@@ -22,7 +22,7 @@ setup(
         ("share/" + PACKAGE + "/config", glob("config/*.yaml")),
         ("share/" + PACKAGE + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=['numpy', 'torch', 'pyyaml', 'bimacppo_sim', 'bimacppo_mpc', 'bimacppo_curriculum'],
+    install_requires=['numpy', 'torch', 'pyyaml', 'bimacppo_common', 'bimacppo_sim', 'bimacppo_mpc', 'bimacppo_curriculum'],
     zip_safe=False,
     maintainer="bimacppo maintainers",
     maintainer_email="maintainers@bimacppo.dev",

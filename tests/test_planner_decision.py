@@ -102,6 +102,52 @@ def test_env_config_defaults_and_errors(tmp_path):
     with pytest.raises(ConfigError, match="cannot read"):
         EnvConfig.load(tmp_path / "missing.yaml")
     assert EnvConfig.load(overrides={"reward.step": -0.5}).reward.step == -0.5
+    bad.write_text("reward:\n  alpha4: 1.0\n")                  # a penalty must stay <= 0
+    with pytest.raises(ConfigError, match=r"env\.yaml: key 'reward\.alpha4' must be <= 0"):
+        EnvConfig.load(bad)
+    with pytest.raises(ConfigError, match=r"overrides: unknown key 'reward\.stepp' \(did you mean 'step'\?\)"):
+        EnvConfig.load(overrides={"reward.stepp": -0.5})
+
+
+VARIANTS = {   # variant file -> what it changes relative to the packaged env.yaml, and nothing else
+    "bimacppo_learning/bimacppo_learning/config/env_ego.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]}},
+    "bimacppo_learning/bimacppo_learning/config/env_extended.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
+         "action": {"decision_every": 3}},
+    "studies/config/env_extended_safe.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
+         "action": {"decision_every": 3}, "reward": {"collision_base": -30.0}},
+}
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_variant_files_overlay_the_packaged_env_yaml(variant):
+    import yaml
+    from conftest import REPO
+    path = REPO / variant
+    assert yaml.safe_load(path.read_text()) == VARIANTS[variant]          # lists only its changes
+    assert path.read_text().startswith("# Overlays bimacppo_planner/config/env.yaml")
+    expect = EnvConfig.load().to_dict()
+    for sec, keys in VARIANTS[variant].items():
+        expect[sec].update(keys)
+    assert EnvConfig.load(path).to_dict() == expect
+
+
+def test_saved_env_config_round_trips_and_older_dicts_take_packaged_defaults():
+    import dataclasses
+    cfg = EnvConfig.load(overrides={"observation": {"max_sv": 2}, "action.decision_every": 2})
+    saved = cfg.to_dict()
+    assert EnvConfig.from_dict(saved, where="policy.pt") == cfg
+    del saved["observation"]["sv_frame"], saved["reward"]                 # saved before those keys existed
+    old = EnvConfig.from_dict(saved, where="policy.pt")
+    assert old.observation.sv_frame == EnvConfig.load().observation.sv_frame and old.reward == EnvConfig.load().reward
+    assert (old.observation.max_sv, old.action.decision_every) == (2, 2)
+    with pytest.raises(ConfigError, match=r"policy\.pt: key 'action\.n_waypoints' must be >= 1, got 0"):
+        EnvConfig.from_dict({"action": {"n_waypoints": 0}}, where="policy.pt")
+    assert ObservationConfig() == EnvConfig.load().observation           # class defaults = env.yaml
+    with pytest.raises(ValueError, match="max_sv"):
+        dataclasses.replace(ObservationConfig(), max_sv=-1)
 
 
 def test_ego_frame_observation_keeps_sides():

@@ -9,13 +9,13 @@ the road's `lateral_point` (for the lane-change sub-action).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
-from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
-import yaml
+
+from bimacppo_common import config
+from bimacppo_common.config import ConfigError, Packaged, config_class, invalid, setting  # noqa: F401  (ConfigError: re-exported)
 
 TWO_PI = 2.0 * math.pi
 
@@ -28,133 +28,65 @@ def wrap_angle(a: float) -> float:
     return a - math.pi
 
 
-class ConfigError(ValueError):
-    """A configuration file or value is invalid; the message names the file and the key."""
+# Every default is written once, in config/env.yaml; a variant file or dict overlays it
+# (bimacppo_common.config states the rules).
+ENV_YAML = Packaged("bimacppo_planner", "config/env.yaml")
 
 
-@dataclass(frozen=True)
+@config_class(ENV_YAML, "observation")
 class ObservationConfig:
-    max_sv: int = 3
-    sv_clip: float = 7.5
-    sv_order: str = "distance"
-    pad_value: tuple = (7.5, 7.5, 0.0, 0.0)
-    sv_frame: str = "paper"   # paper: |dx|, |dy| in the map frame (eq. 20); ego: signed, in the EV's frame
-
-    def validate(self, where: str) -> None:
-        if not (isinstance(self.max_sv, int) and 0 <= self.max_sv <= 16):
-            raise ConfigError(f"{where}: observation.max_sv must be an integer in [0, 16], got {self.max_sv!r}")
-        if not (self.sv_clip > 0 and math.isfinite(self.sv_clip)):
-            raise ConfigError(f"{where}: observation.sv_clip must be a positive number, got {self.sv_clip!r}")
-        if self.sv_order not in ("distance", "id"):
-            raise ConfigError(f"{where}: observation.sv_order must be 'distance' or 'id', got {self.sv_order!r}")
-        if self.sv_frame not in ("paper", "ego"):
-            raise ConfigError(f"{where}: observation.sv_frame must be 'paper' or 'ego', got {self.sv_frame!r}")
-        if len(self.pad_value) != 4 or not all(math.isfinite(float(v)) for v in self.pad_value):
-            raise ConfigError(f"{where}: observation.pad_value must be 4 finite numbers, got {self.pad_value!r}")
+    max_sv: int = setting(lo=0, hi=16)
+    sv_clip: float = setting(lo=0.0, lo_open=True)
+    sv_order: str = setting(choices=("distance", "id"))
+    pad_value: tuple[float, ...] = setting(length=4)
+    sv_frame: str = setting(choices=("paper", "ego"))   # paper: |dx|, |dy| in the map frame (eq. 20); ego: signed, in the EV's frame
 
 
-@dataclass(frozen=True)
+@config_class(ENV_YAML, "action")
 class ActionConfig:
-    n_waypoints: int = 5
-    speeds: tuple = (0.0, 2.0, 4.0, 6.0, 8.0)
-    lane_change: tuple = (-1, 0, 1)
-    decision_every: int = 1
+    n_waypoints: int = setting(lo=1)
+    speeds: tuple[float, ...] = setting(lo=0.0, min_length=1)
+    lane_change: tuple[int, ...]
+    decision_every: int = setting(lo=1)
 
-    def validate(self, where: str) -> None:
-        if not (isinstance(self.n_waypoints, int) and self.n_waypoints >= 1):
-            raise ConfigError(f"{where}: action.n_waypoints must be an integer >= 1, got {self.n_waypoints!r}")
-        if len(self.speeds) < 1 or any((not math.isfinite(float(s))) or s < 0 for s in self.speeds):
-            raise ConfigError(f"{where}: action.speeds must be finite non-negative numbers, got {self.speeds!r}")
-        if tuple(self.lane_change) != (-1, 0, 1):
-            raise ConfigError(f"{where}: action.lane_change must be [-1, 0, 1] (left, keep, right), got {self.lane_change!r}")
-        if not (isinstance(self.decision_every, int) and self.decision_every >= 1):
-            raise ConfigError(f"{where}: action.decision_every must be an integer >= 1, got {self.decision_every!r}")
+    def _check(self) -> None:
+        if self.lane_change != (-1, 0, 1):
+            raise invalid("lane_change", f"must be [-1, 0, 1] (left, keep, right), got {list(self.lane_change)}")
 
 
-@dataclass(frozen=True)
+@config_class(ENV_YAML, "reward")
 class RewardConfig:
-    success_base: float = 10.0
-    alpha1: float = 2.0
-    alpha2: float = 0.5
-    alpha3: float = 10.0
-    r_f_max: float = 3.0
-    collision_base: float = -10.0
-    alpha4: float = -1.0
-    timeout: float = -5.0
-    lane_change: float = -0.05
-    step: float = -0.02
-
-    def validate(self, where: str) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ConfigError(f"{where}: reward.{f.name} must be a finite number, got {v!r}")
-        if self.alpha4 > 0 or self.collision_base > 0:
-            raise ConfigError(f"{where}: reward.alpha4 and reward.collision_base are penalties and must be <= 0")
+    success_base: float
+    alpha1: float
+    alpha2: float
+    alpha3: float
+    r_f_max: float
+    collision_base: float = setting(hi=0.0)   # penalties: <= 0
+    alpha4: float = setting(hi=0.0)
+    timeout: float
+    lane_change: float
+    step: float
 
 
-@dataclass(frozen=True)
+@config_class(ENV_YAML)
 class EnvConfig:
-    observation: ObservationConfig = field(default_factory=ObservationConfig)
-    action: ActionConfig = field(default_factory=ActionConfig)
-    reward: RewardConfig = field(default_factory=RewardConfig)
+    observation: ObservationConfig
+    action: ActionConfig
+    reward: RewardConfig
 
     @classmethod
     def load(cls, path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> "EnvConfig":
-        """Load the YAML (default: the packaged ``config/env.yaml``); unknown keys are errors."""
-        if path is None:
-            where = "bimacppo_planner/config/env.yaml"
-            text = resources.files("bimacppo_planner").joinpath("config/env.yaml").read_text()
-        else:
-            where = str(path)
-            try:
-                text = Path(path).read_text()
-            except OSError as exc:
-                raise ConfigError(f"{where}: cannot read environment config: {exc}") from exc
-        try:
-            raw = yaml.safe_load(text) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{where}: not valid YAML: {exc}") from exc
-        if not isinstance(raw, dict):
-            raise ConfigError(f"{where}: top level must be a mapping, got {type(raw).__name__}")
-        for key, value in (overrides or {}).items():  # "reward.step": -0.1
-            sec, _, name = key.partition(".")
-            if not name or not isinstance(raw.setdefault(sec, {}), dict):
-                raise ConfigError(f"{where}: bad override key {key!r}; use 'section.key'")
-            raw[sec] = {**raw[sec], name: value}
-        return cls.from_dict(raw, where)
+        """The packaged ``config/env.yaml``, overlaid by the YAML at ``path`` (a variant lists only
+        what it changes), then by ``overrides`` ({"reward.step": -0.1} or nested dicts)."""
+        return config.load(cls, path, overrides)
 
     @classmethod
     def from_dict(cls, raw: Mapping[str, Any], where: str = "<dict>") -> "EnvConfig":
-        sections = {"observation": ObservationConfig, "action": ActionConfig, "reward": RewardConfig}
-        unknown = set(raw) - set(sections)
-        if unknown:
-            raise ConfigError(f"{where}: unknown section(s) {sorted(unknown)}; expected {sorted(sections)}")
-        built = {}
-        for name, klass in sections.items():
-            sub = raw.get(name) or {}
-            if not isinstance(sub, Mapping):
-                raise ConfigError(f"{where}: section '{name}' must be a mapping")
-            known = {f.name for f in fields(klass)}
-            bad = set(sub) - known
-            if bad:
-                raise ConfigError(f"{where}: unknown key(s) {sorted(f'{name}.{b}' for b in bad)}")
-            vals = {k: (tuple(v) if isinstance(v, list) else v) for k, v in sub.items()}
-            try:
-                obj = klass(**vals)
-            except TypeError as exc:
-                raise ConfigError(f"{where}: section '{name}': {exc}") from exc
-            obj.validate(where)
-            built[name] = obj
-        return cls(**built)
+        """A dict in env.yaml's layout (a policy's saved ``to_dict()``, or a few keys) over the defaults."""
+        return config.from_dict(cls, raw, where)
 
     def to_dict(self) -> dict:
-        out = {}
-        for sec in ("observation", "action", "reward"):
-            obj = getattr(self, sec)
-            out[sec] = {f.name: (list(getattr(obj, f.name)) if isinstance(getattr(obj, f.name), tuple) else getattr(obj, f.name))
-                        for f in fields(obj)}
-        return out
+        return config.to_dict(self)
 
     @property
     def obs_dim(self) -> int:
