@@ -43,7 +43,7 @@ setup(
     include_package_data=True,
     package_data={PACKAGE: ["**/*.yaml"]},
     install_requires=["numpy", "torch", "gymnasium", "pyyaml", "tqdm", "matplotlib",
-                      "bimacppo_sim", "bimacppo_mpc", "bimacppo_curriculum", "bimacppo_planner"],
+                      "bimacppo_common", "bimacppo_sim", "bimacppo_mpc", "bimacppo_curriculum", "bimacppo_planner"],
     zip_safe=False,
     description="Training stack of BiM-ACPPO: Gymnasium env, PPO, curricula runs, evaluation, experiments.",
     license="Apache-2.0",

@@ -154,14 +154,17 @@ def test_packaged_config_has_paper_values():
 
 
 @pytest.mark.parametrize("text, match", [
-    ("ppo:\n  gama: 0.9\n", "unknown key.*gama"),
-    ("ppo:\n  gamma: 1.5\n", "gamma=1.5"),
-    ("ppo:\n  epochs: 2.5\n", "epochs=2.5.*integer"),
+    ("ppo:\n  gama: 0.9\n", r"unknown key 'ppo\.gama' \(did you mean 'gamma'\?\)"),
+    ("ppo:\n  gamma: 1.5\n", r"key 'ppo\.gamma' must be in \[0\.0, 1\.0\], got 1\.5"),
+    ("ppo:\n  epochs: 2.5\n", r"key 'ppo\.epochs' must be an integer, got 2\.5"),
     ("ppo:\n  activation: gelu\n", "activation"),
     ("ppo:\n  clip_eps: 0\n", "clip_eps"),
+    ("ppo:\n  hidden_sizes: [256, 0]\n", r"ppo\.hidden_sizes' item 1 must be >= 1"),
     ("train:\n  vector: threads\n", "vector"),
     ("train:\n  num_envs: 0\n", "num_envs"),
-    ("trian:\n  num_envs: 2\n", "unknown section"),
+    ("train:\n  num_envs: 2\n  batch_workers: 3\n", r"train\.batch_workers' must be <= num_envs \(2\)"),
+    ("train:\n  num_env: 2\n", r"unknown key 'train\.num_env' \(did you mean 'num_envs'\?\)"),
+    ("trian:\n  num_envs: 2\n", r"unknown key 'trian' \(did you mean 'train'\?\)"),
     ("ppo: [1, 2]\n", "mapping"),
     ("ppo:\n  gamma: [0.9\n", "not valid YAML"),
 ])
@@ -180,3 +183,42 @@ def test_config_overrides_are_validated_and_missing_file_is_reported(tmp_path):
         load_config(ppo={"minibatch_size": -1})
     with pytest.raises(ValueError, match="cannot read"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_a_config_file_overlays_the_packaged_one(tmp_path):
+    """ppo_finetune.yaml lists three keys; everything else is ppo.yaml's (not a class default)."""
+    from bimacppo_learning.ppo_config import DEFAULT_PATH
+    finetune = DEFAULT_PATH.with_name("ppo_finetune.yaml")
+    p, t = load_config(finetune)
+    base_p, base_t = load_config()
+    assert (p.actor_lr, p.entropy_coef, p.target_kl) == (1e-4, 0.001, 0.02)
+    assert p == dataclasses.replace(base_p, actor_lr=1e-4, entropy_coef=0.001, target_kl=0.02) and t == base_t
+    assert PPOConfig() == base_p and TrainConfig() == base_t     # the class's defaults are the packaged file
+    f = tmp_path / "mine.yaml"
+    f.write_text("train:\n  num_envs: 4\n")
+    p, t = load_config(f, train={"batch_workers": 4})           # the file, then the overrides
+    assert (t.num_envs, t.batch_workers, t.rollout_steps) == (4, 4, base_t.rollout_steps)
+    with pytest.raises(ValueError, match=r"overrides: key 'train\.batch_workers' must be <= num_envs \(4\)"):
+        load_config(f, train={"batch_workers": 5})
+
+
+def test_saved_config_round_trips_and_older_dicts_take_packaged_defaults():
+    from bimacppo_learning.ppo_config import config_from_dict, config_hash, config_to_dict
+    p, t = load_config(ppo={"minibatch_size": 64}, train={"num_envs": 3})
+    d = config_to_dict(p, t)
+    assert config_from_dict(d) == (p, t)
+    assert config_from_dict({"ppo": d["ppo"]}) == (p, None)
+    old = {"ppo": dict(d["ppo"]), "train": dict(d["train"])}
+    del old["train"]["batch_workers"], old["train"]["update_threads"], old["ppo"]["target_kl"]
+    assert config_from_dict(old) == (p, t)
+    assert config_hash(p) == config_hash(config_from_dict(d)[0]) != config_hash(PPOConfig())
+    with pytest.raises(ValueError, match=r"ckpt\.pt: unknown key 'ppo\.gama'"):
+        config_from_dict({"ppo": {"gama": 0.9}}, source="ckpt.pt")
+
+
+def test_direct_construction_and_replace_are_validated():
+    with pytest.raises(ValueError, match=r"PPOConfig: key 'gamma' must be in"):
+        PPOConfig(gamma=2.0)
+    with pytest.raises(ValueError, match="batch_workers"):
+        dataclasses.replace(TrainConfig(), num_envs=1, batch_workers=2)
+    assert PPOConfig(hidden_sizes=[64, 64]).hidden_sizes == (64, 64)
