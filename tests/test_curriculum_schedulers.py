@@ -1,4 +1,5 @@
 """The shared scheduler interface: factory, baselines' sampling laws, resume, configs."""
+import dataclasses
 import json
 import math
 
@@ -196,7 +197,7 @@ def test_broken_config_files_name_the_key(tmp_path):
         "alpha_c": text.replace("alpha_c: 0.01", "alpha_c: fast"),
         "k1": text.replace("k1: 1.0", "k1: 0.05"),
         "gamma": text + "gamma: 0.9\n",
-        "beta_a": "\n".join(l for l in text.splitlines() if not l.startswith("beta_a")),
+        "k0": "k0: 2.0\n",       # an overlay of one key that breaks k1 >= k0: still named by this file
     }
     for key, body in cases.items():
         p = tmp_path / f"{key}.yaml"
@@ -210,6 +211,35 @@ def test_broken_config_files_name_the_key(tmp_path):
         make_scheduler("bimab", config=bad)
     with pytest.raises(ValueError, match="cannot read"):
         make_scheduler("bimab", config=tmp_path / "missing.yaml")
+
+
+def test_a_config_file_overlays_the_packaged_one(tmp_path):
+    """A user's file lists only what it changes; the rest is the packaged file's, and what it
+    misspells is refused with the closest key suggested."""
+    p = tmp_path / "fast_sync.yaml"
+    p.write_text("# only the sync period differs\nsync_interval: 50\n")
+    s = make_scheduler("bimab", config=p)
+    assert s.config == dataclasses.replace(BiMABConfig(), sync_interval=50)
+    assert BiMABConfig().beta_a == 0.001                      # the packaged value, written once
+    p.write_text("sync_intervall: 50\n")
+    with pytest.raises(ValueError, match=r"unknown key 'sync_intervall' \(did you mean 'sync_interval'\?\)"):
+        make_scheduler("bimab", config=p)
+
+
+def test_a_saved_config_lacking_a_newer_key_takes_the_packaged_default():
+    saved = BiMABConfig().to_dict()
+    del saved["max_pending"]
+    assert BiMABConfig.from_dict(saved, source="old state") == BiMABConfig()
+    with pytest.raises(ValueError, match=r"old state: key 'max_pending' must be >= 0"):
+        BiMABConfig.from_dict({**saved, "max_pending": -1}, source="old state")
+
+
+def test_configs_are_frozen_and_checked_on_replace():
+    c = BiMABConfig()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        c.eta = 0.5
+    with pytest.raises(ValueError, match="eta"):
+        dataclasses.replace(c, eta=2.0)
 
 
 def test_override_dicts_are_validated():
