@@ -20,105 +20,66 @@ import json
 import logging
 import sys
 import time
-from dataclasses import dataclass, field
+import dataclasses
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-import yaml
 
-from bimacppo_planner.decision import ConfigError, EnvConfig
+from bimacppo_common import config
+from bimacppo_common.config import ConfigError, Packaged, config_class, invalid, runtime, setting
+from bimacppo_planner.decision import EnvConfig
 
 log = logging.getLogger(__name__)
-DEFAULT_CONFIG = Path(__file__).parent / "config" / "imitation.yaml"
+IMITATION_YAML = Packaged("bimacppo_learning", "config/imitation.yaml")
+DEFAULT_CONFIG = Path(IMITATION_YAML.path)
 TASK_NAMES = ("left", "straight", "right")
 
 
-@dataclass(frozen=True)
+@config_class(IMITATION_YAML, "teacher")
 class TeacherConfig:
-    go: dict = field(default_factory=dict)      # task -> [A1, A2, A3]
-    stop: tuple = (0, 0, 1)
-    commit_margin: float = 3.0
-    brake_decel: float = 2.5
-    brake_within: float = 4.0
+    go: dict[str, tuple[int, ...]] = setting(keys=TASK_NAMES, length=3, lo=0)   # task -> [A1, A2, A3]
+    stop: tuple[int, ...] = setting(length=3, lo=0)
+    commit_margin: float = setting(lo=0.0, hi=50.0)
+    brake_decel: float = setting(lo=0.1, hi=10.0)
+    brake_within: float = setting(lo=0.0, hi=50.0)
 
 
-@dataclass(frozen=True)
+@config_class(IMITATION_YAML, "clone")
 class CloneConfig:
-    epochs: int = 40
-    batch_size: int = 512
-    lr: float = 1e-3
-    gamma: float = 0.99
+    epochs: int = setting(lo=1, hi=10_000)
+    batch_size: int = setting(lo=1, hi=1_000_000)
+    lr: float = setting(lo=1e-7, hi=1.0)
+    gamma: float = setting(lo=0.0, hi=1.0)
 
 
-@dataclass(frozen=True)
+@config_class(IMITATION_YAML)
 class ImitationConfig:
-    episodes: int
-    seed_base: int
-    n_sv_probs: tuple
+    episodes: int = setting(lo=1, hi=10_000_000)
+    seed_base: int = setting(lo=0, hi=2**62)
+    n_sv_probs: tuple[float, ...] = setting(lo=0.0, min_length=1)
     teacher: TeacherConfig
     clone: CloneConfig
-    source: str = ""
+    source: str = runtime("")     # the file it was read from
+
+    def _check(self) -> None:
+        if abs(sum(self.n_sv_probs) - 1.0) > 1e-6:
+            raise invalid("n_sv_probs", f"must be non-negative numbers summing to 1, got {list(self.n_sv_probs)}")
 
     @classmethod
     def load(cls, path: str | Path | None = None, nvec=None) -> "ImitationConfig":
-        """Read and validate the YAML; ``nvec`` (the env's action sizes) bounds the actions."""
-        p = Path(path) if path is not None else DEFAULT_CONFIG
-        try:
-            d = yaml.safe_load(p.read_text())
-        except OSError as exc:
-            raise ConfigError(f"{p}: cannot read ({exc.strerror or exc})") from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
-        if not isinstance(d, dict):
-            raise ConfigError(f"{p}: top level must be a mapping")
-
-        def need(m, key, where, kind, lo=None, hi=None):
-            if not isinstance(m, dict) or key not in m:
-                raise ConfigError(f"{p}: missing key '{where}{key}'")
-            v = m[key]
-            if kind is int and (isinstance(v, bool) or not isinstance(v, int)):
-                raise ConfigError(f"{p}: key '{where}{key}' must be an integer, got {v!r}")
-            if kind is float:
-                if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-                    raise ConfigError(f"{p}: key '{where}{key}' must be a finite number, got {v!r}")
-                v = float(v)
-            if (lo is not None and v < lo) or (hi is not None and v > hi):
-                raise ConfigError(f"{p}: key '{where}{key}' = {v} outside [{lo}, {hi}]")
-            return v
-
-        def action(v, where):
-            ok = isinstance(v, list) and len(v) == 3 and all(isinstance(a, int) and not isinstance(a, bool) for a in v)
-            if ok and nvec is not None:
-                ok = all(0 <= a < n for a, n in zip(v, nvec))
-            if not ok:
-                raise ConfigError(f"{p}: key '{where}' must be [A1, A2, A3] within MultiDiscrete({list(nvec or [])}), "
-                                  f"got {v!r}")
-            return tuple(v)
-
-        probs = d.get("n_sv_probs")
-        if (not isinstance(probs, list) or not probs or
-                not all(isinstance(x, (int, float)) and not isinstance(x, bool) and x >= 0 for x in probs) or
-                abs(sum(probs) - 1.0) > 1e-6):
-            raise ConfigError(f"{p}: key 'n_sv_probs' must be non-negative numbers summing to 1, got {probs!r}")
-        t = d.get("teacher")
-        go = need(t, "go", "teacher.", dict)
-        if not isinstance(go, dict) or set(go) != set(TASK_NAMES):
-            raise ConfigError(f"{p}: key 'teacher.go' must map exactly {list(TASK_NAMES)} to actions")
-        teacher = TeacherConfig(
-            go={k: action(v, f"teacher.go.{k}") for k, v in go.items()},
-            stop=action(need(t, "stop", "teacher.", list), "teacher.stop"),
-            commit_margin=need(t, "commit_margin", "teacher.", float, 0.0, 50.0),
-            brake_decel=need(t, "brake_decel", "teacher.", float, 0.1, 10.0),
-            brake_within=need(t, "brake_within", "teacher.", float, 0.0, 50.0))
-        c = d.get("clone")
-        clone = CloneConfig(epochs=need(c, "epochs", "clone.", int, 1, 10_000),
-                            batch_size=need(c, "batch_size", "clone.", int, 1, 1_000_000),
-                            lr=need(c, "lr", "clone.", float, 1e-7, 1.0),
-                            gamma=need(c, "gamma", "clone.", float, 0.0, 1.0))
-        return cls(episodes=need(d, "episodes", "", int, 1, 10_000_000),
-                   seed_base=need(d, "seed_base", "", int, 0, 2**62),
-                   n_sv_probs=tuple(float(x) for x in probs), teacher=teacher, clone=clone, source=str(p))
+        """The packaged imitation.yaml, overlaid by the YAML at ``path`` (which lists only what it
+        changes); ``nvec`` (the env's action sizes) bounds the teacher's actions."""
+        cfg = config.load(cls, path)
+        cfg = dataclasses.replace(cfg, source=str(path) if path is not None else IMITATION_YAML.path)
+        if nvec is not None:
+            actions = {f"teacher.go.{k}": v for k, v in cfg.teacher.go.items()}
+            actions["teacher.stop"] = cfg.teacher.stop
+            for key, a in actions.items():
+                if not all(0 <= x < n for x, n in zip(a, nvec)):
+                    raise ConfigError(f"must be [A1, A2, A3] within MultiDiscrete({list(nvec)}), got {list(a)}",
+                                      source=cfg.source, key=key)
+        return cfg
 
 
 class YieldTeacher:
