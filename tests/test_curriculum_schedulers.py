@@ -119,6 +119,23 @@ def test_bad_states_are_rejected_without_side_effects():
         fresh.load_state_dict(good)
 
 
+def test_a_state_saved_before_a_config_key_existed_resumes():
+    a = make_scheduler("bimab", seed=3, config={"sync_interval": 10})
+    play(a, 30, returns(1))
+    state = json.loads(json.dumps(a.state_dict()))
+    del state["config"]["max_pending"]          # the key is newer than the state
+    b = make_scheduler("bimab", seed=3, config={"sync_interval": 10})
+    b.load_state_dict(state)
+    assert b.n_updates == 30 and b.sample() == a.sample()
+    other = make_scheduler("bimab", seed=3, config={"sync_interval": 10, "max_pending": a.config.max_pending + 1})
+    with pytest.raises(ValueError, match=r"differs from this scheduler's config in \['max_pending'\]"):
+        other.load_state_dict(state)             # the packaged default is not this scheduler's value
+    with pytest.raises(ValueError, match=r"config.*\['sync_interval'\]"):
+        make_scheduler("bimab", seed=3).load_state_dict(state)
+    with pytest.raises(ValueError, match=r"state: key 'config'.*unknown key 'sync_intervall'"):
+        b.load_state_dict(dict(state, config={"sync_intervall": 10}))
+
+
 # ------------------------------------------------------------------ baselines' laws
 def test_fixed_ppo_always_hardest_cluster_tasks_uniform():
     s = make_scheduler("fixed", seed=0)

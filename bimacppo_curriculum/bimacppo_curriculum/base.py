@@ -111,9 +111,12 @@ class Scheduler:
             raise ValueError(f"state: key 'scheduler' is {d['scheduler']!r}, this scheduler is {self.name!r}")
         if d["version"] != STATE_VERSION:
             raise ValueError(f"state: key 'version' is {d['version']!r}, expected {STATE_VERSION}")
+        # The saved config is read the way a config file is (a key saved before it existed takes
+        # the packaged default), so only a value that really differs refuses the state.
+        saved = self.config_cls.from_dict(d["config"], source="state: key 'config'").to_dict()
         mine = self.config.to_dict()
-        if d["config"] != mine:
-            diff = sorted(k for k in set(mine) | set(d["config"]) if mine.get(k) != d["config"].get(k))
+        if saved != mine:
+            diff = sorted(k for k in mine if mine[k] != saved[k])
             raise ValueError(f"state: key 'config' differs from this scheduler's config in {diff}; "
                              f"build the scheduler with the saved config to resume")
         counts = np.asarray(d["counts"], dtype=np.int64)
