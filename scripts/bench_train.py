@@ -25,10 +25,14 @@ import tempfile
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXT = ROOT / "bimacppo_learning" / "bimacppo_learning" / "config" / "env_extended.yaml"
 # name -> train-section overrides; "per-env" is the loop as it ran before batching (2 subprocess
-# envs x 1024 steps per update); "batched" keeps 2048 samples per update (16 x 128).
+# envs x 1024 steps per update, every torch op on one thread); "batched" keeps 2048 samples per
+# update (16 x 128), in this process or split over 2 worker processes. All rows update on one
+# thread: on a machine shared with other jobs, extra update threads can cost more than they give.
 CONFIGS = {
-    "per-env": {"vector": "async", "num_envs": 2, "rollout_steps": 1024},
-    "batched": {"vector": "batched", "num_envs": 16, "rollout_steps": 128},
+    "per-env": {"vector": "async", "num_envs": 2, "rollout_steps": 1024, "update_threads": 1},
+    "batched": {"vector": "batched", "num_envs": 16, "rollout_steps": 128, "batch_workers": 1, "update_threads": 1},
+    "batched-2proc": {"vector": "batched", "num_envs": 16, "rollout_steps": 128, "batch_workers": 2,
+                      "update_threads": 1},
 }
 
 CHILD = r"""

@@ -41,12 +41,13 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", default="dual_lane_4way", choices=MAPS)
     p.add_argument("--run-dir", type=Path, default=None, help="default: runs/<curriculum>-s<seed>")
     p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --run-dir")
-    p.add_argument("--num-envs", type=int, default=None, help="parallel environments (default: config, 2)")
+    p.add_argument("--num-envs", type=int, default=None, help="environments stepped together (default: config/ppo.yaml, 16); PPO updates on num_envs x rollout_steps samples, so change rollout_steps with it (--ppo-config)")
     p.add_argument("--vector", choices=("batched", "async", "sync"), default=None,
                    help="batched = all envs in this process, one NMPC and policy call per step (fastest); "
                         "async = one subprocess per env; sync = a plain in-process loop")
     p.add_argument("--ppo-config", type=Path, default=None, help="YAML overriding bimacppo_learning/config/ppo.yaml")
-    p.add_argument("--env-config", type=Path, default=None, help="YAML replacing bimacppo_planner/config/env.yaml")
+    p.add_argument("--env-config", type=Path, default=None,
+                   help="YAML overlaying bimacppo_planner/config/env.yaml (lists only what it changes)")
     p.add_argument("--curriculum-config", default=None,
                    help="YAML for the scheduler (default: the packaged one for that curriculum)")
     p.add_argument("--init-policy", type=Path, default=None,
