@@ -92,18 +92,19 @@ def main() -> int:
     base = rows[0][1]
     print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
           f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}\n")
-    print("| path | train config | episodes/s | ticks/s | decisions/s | ratio | env s | policy s | update s | other s | "
-          "peak RSS main / largest worker (MiB) | success, last 200 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| path | train config | episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC (CPU s, all workers) | "
+          "policy s | update s | other s | peak RSS main / largest worker (MiB) | success, last 200 |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows:
         tm = r["timing"]
         other = tm["total"] - tm["env"] - tm["policy"] - tm["update"]
         eps = r["episodes"] / r["wall"]
         spread = f" ({min(r['eps_all']):.1f}-{max(r['eps_all']):.1f})" if len(r["eps_all"]) > 1 else ""
+        mpc = f"{tm['mpc_cpu']:.1f}" if "mpc_cpu" in tm else "-"
         print(f"| {name} | {json.dumps(CONFIGS[name])} | {eps:.1f}{spread} | {r['ticks'] / r['wall']:.0f} | "
               f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x | {tm['env']:.1f} | "
-              f"{tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | {r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | "
-              f"{100 * r['success']:.0f}% |")
+              f"{mpc} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | "
+              f"{r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | {100 * r['success']:.0f}% |")
     return 0
 
 

@@ -91,6 +91,7 @@ class IntersectionBatch:
         self.mpc_failures = np.zeros(B, np.int64)
         self.running = np.zeros(B, bool)      # reset and not yet finished
         self._X0 = np.zeros((B, 4))
+        self.mpc_seconds = 0.0                # time spent in the NMPC: where training time goes
 
     # ----------------------------------------------------------------- episodes
     def scenario_from_options(self, i: int, options: Mapping[str, Any] | None) -> Scenario:
@@ -180,6 +181,7 @@ class IntersectionBatch:
             for i in range(self.B):
                 X0[i] = self.worlds[i].ego_tuple()
             sol = self.ctrl.solve_batch(X0, self.x_imr, self.u_prev)
+            self.mpc_seconds += sol.solve_time_s
             for i in np.nonzero(alive)[0]:
                 if not sol.ok[i]:
                     self.mpc_failures[i] += 1

@@ -47,7 +47,7 @@ class TrainResult:
     run_dir: pathlib.Path
     history_path: pathlib.Path
     last_checkpoint: pathlib.Path | None
-    timing: dict                 # seconds of this call spent in env / policy / update / other (bookkeeping)
+    timing: dict                 # seconds of this call in env / policy / update / total; batched: mpc_cpu (summed over workers)
 
 
 class Trainer:
@@ -287,6 +287,8 @@ class Trainer:
                     self.save()
         finally:
             tm["total"] += time.perf_counter() - p0
+            if callable(getattr(venv, "mpc_seconds", None)):
+                tm["mpc_cpu"] = venv.mpc_seconds()   # CPU seconds over all worker processes
             hist.close()
 
     def _finish_episode(self, info: Mapping[str, Any], slot: dict, terminated: bool, hist,

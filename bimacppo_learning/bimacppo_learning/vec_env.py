@@ -87,6 +87,10 @@ class BatchedVectorEnv(VectorEnv):
             infos = self._add_info(infos, summary, int(i))
         return obs, rew, term, trunc, infos
 
+    def mpc_seconds(self) -> float:
+        """Seconds spent in NMPC solves so far, summed over the blocks (so over processes)."""
+        return self.batch.mpc_seconds if self._pool is None else self._pool.mpc_seconds()
+
     def close_extras(self, **kwargs):
         if self._pool is not None:
             self._pool.close()
@@ -110,7 +114,10 @@ def _block_worker(conn, n: int, batch_kwargs: dict) -> None:
         if op == "close":
             break
         try:
-            out = batch.reset(*arg) if op == "reset" else batch.step(arg)
+            if op == "mpc_seconds":
+                out = batch.mpc_seconds
+            else:
+                out = batch.reset(*arg) if op == "reset" else batch.step(arg)
             conn.send(("ok", out))
         except Exception as exc:  # noqa: BLE001
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
@@ -159,6 +166,11 @@ class _BlockPool:
         infos = [info for p in parts for info in p[4]]
         return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
                 np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts]), infos)
+
+    def mpc_seconds(self) -> float:
+        for c in self.conns:
+            c.send(("mpc_seconds", None))
+        return float(sum(self._answer(c) for c in self.conns))
 
     def close(self) -> None:
         for c in self.conns:
