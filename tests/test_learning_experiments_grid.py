@@ -15,6 +15,7 @@ ppo:
   epochs: 2
 train:
   num_envs: 1
+  batch_workers: 1
   vector: sync
   rollout_steps: 64
   checkpoint_every: 2
