@@ -8,13 +8,14 @@ BiM-ACPPO seed on the three-lane road; ``report`` turns whatever exists into
 Each step skips what is already done, so ``all`` can be re-run after any interruption.
 docs/experiments.md says how to run it and why each constant is what it is.
 
-Modules, one job each: ``validate`` (the checks config values pass), ``config`` (the YAML
-layers, the dataclasses, where outputs live), ``runs`` (what is on disk and still valid),
+Modules, one job each: ``config`` (experiments.yaml on bimacppo_common.config: the sections,
+their checks, where outputs live), ``runs`` (what is on disk and still valid),
 ``pool`` (Ray: one task per run, progress, failures), ``train`` / ``evaluation`` /
 ``overtake`` (the steps), ``traffic`` (the slow-SV wrapper), ``stats`` (means, spreads,
 curves), ``results`` (the markdown page and figures), ``cli``.
 This package namespace re-exports their public names.
 """
+from bimacppo_common.config import ConfigError  # noqa: F401
 from .config import (CONFIG_PATH, CURRICULA, DRIVERS, MAPS, METHOD_NAMES, OUTCOMES, EvalSection,  # noqa: F401
                      ExperimentConfig, ExperimentError, OvertakeSection, ReportSection, TrainSection,
                      check_methods, load_experiment_config)

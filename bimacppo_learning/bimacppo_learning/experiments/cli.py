@@ -2,12 +2,15 @@
 
 Exit codes: 0 everything asked for exists; 1 some run, evaluation or test failed (each
 reported on one line with its log; the others went on); 2 a problem to fix before anything
-runs (config, method names, corrupt history, no Ray cluster at ``--address``).
+runs (config, method names, corrupt history, no Ray cluster at ``--address``), printed as one
+``bimacppo-experiments: error: ...`` line.
 """
 from __future__ import annotations
 
 import argparse
 import sys
+
+from bimacppo_common.config import ConfigError
 
 from .config import CURRICULA, ExperimentError, load_experiment_config
 from .evaluation import evaluate_all
@@ -40,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.num_cpus is not None and args.num_cpus < 1:
-        print("bimacppo-experiments: --num-cpus must be >= 1", file=sys.stderr)
+        print("bimacppo-experiments: error: --num-cpus must be >= 1", file=sys.stderr)
         return 2
     cluster = Cluster(args.address, args.num_cpus)
     try:
@@ -61,8 +64,8 @@ def main(argv=None) -> int:
             res = report(cfg, args.config)
             print(f"wrote {res['path']} ({len(res['missing'])} item(s) missing)")
         return rc
-    except ExperimentError as exc:
-        print(f"bimacppo-experiments: {exc}", file=sys.stderr)
+    except (ExperimentError, ConfigError) as exc:
+        print(f"bimacppo-experiments: error: {exc}", file=sys.stderr)
         return 2
     finally:
         cluster.close()

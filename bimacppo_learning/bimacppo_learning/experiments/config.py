@@ -1,19 +1,31 @@
-"""The experiments config: the packaged experiments.yaml, a user's YAML and overrides on top,
-validated key by key into frozen dataclasses; the layout of every output path lives here."""
+"""The experiments config: experiments.yaml read through bimacppo_common.config into frozen
+dataclasses, and the layout of every output path.
+
+The packaged experiments.yaml is the only place a default is written (``ExperimentConfig()`` is
+the paper's grid); a ``--config`` file lists only the keys it changes and is deep-merged onto it
+(sections key by key). Every value is checked where it is declared (``setting``) or, for rules
+over several keys, in ``_check``; an error is a ``ConfigError`` naming the file that set the key
+and the dotted key, with the closest known key suggested for an unknown one.
+
+Paths (``runs_dir``, ``results_md``, ``img_prefix``, ``train.ppo_config``, ``train.env_config``)
+are relative to the working directory, not to the config file: the grid is run from the
+repository root, and ``resolved()`` makes them absolute for the Ray tasks.
+"""
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, fields, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Mapping
 
-import yaml
-
+from bimacppo_common import config
+from bimacppo_common.config import Packaged, config_class, invalid, runtime, setting
 from bimacppo_sim import TASKS
 
-from .validate import choice, integer, items, number, optional, text
+from ..ppo_config import VECTOR_MODES
 
-CONFIG_PATH = Path(__file__).resolve().parent.parent / "config" / "experiments.yaml"
+EXPERIMENTS_YAML = Packaged("bimacppo_learning", "config/experiments.yaml")
+CONFIG_PATH = Path(EXPERIMENTS_YAML.path)
 PACKAGED_LABEL = "bimacppo_learning/config/experiments.yaml (packaged)"
 CURRICULA = ("bimab", "fixed", "random", "manual", "rd")
 MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
@@ -21,59 +33,98 @@ DRIVERS = ("go", "yield")
 METHOD_NAMES = {"bimab": "BiM-ACPPO", "fixed": "Fixed PPO", "random": "Random CPPO",
                 "manual": "Manual CPPO", "rd": "RD-ACPPO", "go": 'scripted "go"', "yield": 'scripted "yield"'}
 OUTCOMES = ("success", "collision", "timeout")
+_N_SV = dict(lo=0, hi=3)
+_CPUS = dict(lo=1, hi=256)
 
 
 class ExperimentError(Exception):
-    """A problem the user must fix (bad config, missing run, corrupt file): printed, exit code 2."""
+    """A problem the user must fix (missing run, corrupt file, bad method name): printed, exit
+    code 2. A bad config is a ``ConfigError``, reported the same way."""
 
 
-@dataclass(frozen=True)
+def _no_repeats(obj, *names: str) -> None:
+    """A grid lists each method, seed, N_sv, task and driver once: a repeat would run or count
+    the same cell twice."""
+    for name in names:
+        values = getattr(obj, name)
+        if len(set(values)) != len(values):
+            raise invalid(name, f"must not repeat items, got {list(values)!r}")
+
+
+def _non_empty(obj, *names: str) -> None:
+    for name in names:
+        if getattr(obj, name) == "":
+            raise invalid(name, "must be a non-empty string" + (" or null" if name.endswith("_config") else ""))
+
+
+@config_class(EXPERIMENTS_YAML, "train")
 class TrainSection:
-    num_envs: int
-    vector: str
-    mpc: str
+    """How each training run is launched (one ``bimacppo-train`` Ray task per method x seed)."""
+
+    num_envs: int = setting(lo=1, hi=64)
+    vector: str = setting(choices=VECTOR_MODES)
+    mpc: str = setting(choices=("fast", "ipopt"))
     ppo_config: str | None
-    poll_s: float
-    env_config: str | None = None
-    num_cpus: int = 2
+    poll_s: float = setting(lo=0.0, lo_open=True)
+    env_config: str | None
+    num_cpus: int = setting(**_CPUS)
+
+    def _check(self) -> None:
+        _non_empty(self, "ppo_config", "env_config")
+        for name in ("ppo_config", "env_config"):
+            f = getattr(self, name)
+            if f is not None and not os.path.isfile(f):
+                raise invalid(name, f"no such file {f!r} (paths are relative to the working directory, "
+                                    f"{os.getcwd()})")
 
 
-@dataclass(frozen=True)
+@config_class(EXPERIMENTS_YAML, "evaluation")
 class EvalSection:
-    episodes: int
-    n_sv: tuple
-    tasks: tuple
-    workers: int
-    reference_drivers: tuple
-    num_cpus: int = 2
+    """The evaluation protocol (cells task x N_sv) and the scripted drivers compared with."""
+
+    episodes: int = setting(lo=1, hi=1000)
+    n_sv: tuple[int, ...] = setting(**_N_SV, min_length=1)
+    tasks: tuple[str, ...] = setting(choices=TASKS, min_length=1)
+    workers: int = setting(lo=1, hi=64)
+    reference_drivers: tuple[str, ...] = setting(choices=DRIVERS)
+    num_cpus: int = setting(**_CPUS)
+
+    def _check(self) -> None:
+        _no_repeats(self, "n_sv", "tasks", "reference_drivers")
 
 
-@dataclass(frozen=True)
+@config_class(EXPERIMENTS_YAML, "overtake")
 class OvertakeSection:
-    map: str
-    source_method: str
-    curriculum: str
-    n_slow_max: int
-    episodes: int
-    seed: int
-    test_episodes: int
-    test_n_sv: int
+    """Fine-tuning the best source run on the three-lane road, and its tests."""
+
+    map: str = setting(choices=MAPS)
+    source_method: str = setting(choices=CURRICULA)
+    curriculum: str = setting(choices=CURRICULA)
+    n_slow_max: int = setting(**_N_SV)
+    episodes: int = setting(lo=1)
+    seed: int = setting(lo=0)
+    test_episodes: int = setting(lo=1, hi=1000)
+    test_n_sv: int = setting(**_N_SV)
 
 
-@dataclass(frozen=True)
+@config_class(EXPERIMENTS_YAML, "report")
 class ReportSection:
-    window: int
-    efficiency_fraction: float
-    figure_seed: int
+    """Constants of the results page and its figures."""
+
+    window: int = setting(lo=1)
+    efficiency_fraction: float = setting(lo=0.0, hi=1.0, lo_open=True)
+    figure_seed: int = setting(lo=0)
 
 
-@dataclass(frozen=True)
+@config_class(EXPERIMENTS_YAML)
 class ExperimentConfig:
-    methods: tuple
-    seeds: tuple
-    episodes: int
-    train_map: str
-    zero_shot_map: str | None
+    """The whole grid: experiments.yaml's layout, plus where every output lives."""
+
+    methods: tuple[str, ...] = setting(choices=CURRICULA, min_length=1)
+    seeds: tuple[int, ...] = setting(lo=0, min_length=1)
+    episodes: int = setting(lo=1)
+    train_map: str = setting(choices=MAPS)
+    zero_shot_map: str | None = setting(choices=MAPS)
     runs_dir: str
     results_md: str
     img_prefix: str
@@ -81,7 +132,15 @@ class ExperimentConfig:
     evaluation: EvalSection
     overtake: OvertakeSection
     report: ReportSection
-    source: str = PACKAGED_LABEL
+    source: str = runtime(PACKAGED_LABEL)   # what the results page says it was generated from
+
+    def _check(self) -> None:
+        _no_repeats(self, "methods", "seeds")
+        _non_empty(self, "runs_dir", "results_md", "img_prefix")
+        for name in ("train_map", "zero_shot_map"):
+            if getattr(self, name) == "three_lane_straight":
+                raise invalid(name, "must be an intersection (three_lane_straight is the overtaking map, "
+                                    "see the 'overtake' section)")
 
     # -- layout: one place decides where everything lives ---------------------------------
     def run_dir(self, method: str, seed: int, map_id: str | None = None) -> Path:
@@ -111,101 +170,12 @@ class ExperimentConfig:
                        img_prefix=absolute(self.img_prefix), train=t)
 
 
-SCHEMA: dict[str, Any] = {
-    "methods": items(choice(CURRICULA)),
-    "seeds": items(integer(0)),
-    "episodes": integer(1),
-    "train_map": choice(MAPS),
-    "zero_shot_map": optional(choice(MAPS)),
-    "runs_dir": text(),
-    "results_md": text(),
-    "img_prefix": text(),
-    "train": {"num_envs": integer(1, 64), "vector": choice(("batched", "async", "sync")),
-              "mpc": choice(("fast", "ipopt")), "ppo_config": text(optional=True),
-              "poll_s": number(0.0, lo_open=True), "env_config": text(optional=True), "num_cpus": integer(1, 256)},
-    "evaluation": {"episodes": integer(1, 1000), "n_sv": items(integer(0, 3)), "tasks": items(choice(TASKS)),
-                   "workers": integer(1, 64), "reference_drivers": items(choice(DRIVERS), nonempty=False),
-                   "num_cpus": integer(1, 256)},
-    "overtake": {"map": choice(MAPS), "source_method": choice(CURRICULA), "curriculum": choice(CURRICULA),
-                 "n_slow_max": integer(0, 3), "episodes": integer(1), "seed": integer(0),
-                 "test_episodes": integer(1, 1000), "test_n_sv": integer(0, 3)},
-    "report": {"window": integer(1), "efficiency_fraction": number(0.0, 1.0, lo_open=True),
-               "figure_seed": integer(0)},
-}
-SECTIONS = {"train": TrainSection, "evaluation": EvalSection, "overtake": OvertakeSection, "report": ReportSection}
-
-
-def _read_yaml(path: Path) -> dict:
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ExperimentError(f"{path}: cannot read experiments config: {exc.strerror or exc}") from None
-    except yaml.YAMLError as exc:
-        raise ExperimentError(f"{path}: not valid YAML: {exc}") from None
-    doc = {} if doc is None else doc
-    if not isinstance(doc, dict):
-        raise ExperimentError(f"{path}: top level must be a mapping of keys")
-    return doc
-
-
 def load_experiment_config(path: str | os.PathLike | None = None, overrides: Mapping | None = None) -> ExperimentConfig:
-    """The packaged experiments.yaml, with the keys of ``path`` (a YAML) and then ``overrides``
-    (a dict) on top; every error is an ExperimentError (what the CLI reports) naming the file
-    and the key."""
-    base = _read_yaml(CONFIG_PATH)
-    origin = {k: str(CONFIG_PATH) for k in base}
-    layers = []
-    if path is not None:
-        layers.append((str(path), _read_yaml(Path(path))))
-    if overrides:
-        layers.append(("overrides", dict(overrides)))
-    for src, doc in layers:
-        for key, val in doc.items():
-            if key not in SCHEMA:
-                raise ExperimentError(f"{src}: unknown key '{key}' (expected one of {sorted(SCHEMA)})")
-            if isinstance(SCHEMA[key], dict):
-                if not isinstance(val, dict):
-                    raise ExperimentError(f"{src}: key '{key}' must be a mapping, got {val!r}")
-                for sub in val:
-                    if sub not in SCHEMA[key]:
-                        raise ExperimentError(f"{src}: unknown key '{key}.{sub}' "
-                                              f"(expected one of {sorted(SCHEMA[key])})")
-                    origin[f"{key}.{sub}"] = src
-                base[key] = {**(base.get(key) or {}), **val}
-            else:
-                base[key] = val
-                origin[key] = src
-
-    def value(key, sub=None):
-        name = key if sub is None else f"{key}.{sub}"
-        src = origin.get(name, origin.get(key, str(CONFIG_PATH)))
-        sec = base.get(key) if sub is not None else base
-        if not isinstance(sec, dict) or (sub or key) not in sec:
-            raise ExperimentError(f"{src}: missing key '{name}'")
-        v = sec[sub or key]
-        check = SCHEMA[key][sub] if sub is not None else SCHEMA[key]
-        err = check(v)
-        if err:
-            raise ExperimentError(f"{src}: key '{name}' {err}")
-        return tuple(v) if isinstance(v, list) else v
-
-    kw = {}
-    for key, spec in SCHEMA.items():
-        if isinstance(spec, dict):
-            cls = SECTIONS[key]
-            kw[key] = cls(**{f.name: value(key, f.name) for f in fields(cls)})
-        else:
-            kw[key] = value(key)
-    if kw["zero_shot_map"] == "three_lane_straight" or kw["train_map"] == "three_lane_straight":
-        raise ExperimentError(f"{origin.get('train_map')}: train_map / zero_shot_map must be intersections "
-                              "(three_lane_straight is the overtaking map, see the 'overtake' section)")
-    for name in ("ppo_config", "env_config"):
-        f = getattr(kw["train"], name)
-        if f is not None and not os.path.isfile(f):
-            src = origin.get(f"train.{name}", origin.get("train", str(CONFIG_PATH)))
-            raise ExperimentError(f"{src}: key 'train.{name}': no such file {f!r} (paths are relative to "
-                                  f"the working directory, {os.getcwd()})")
-    return ExperimentConfig(**kw, source=f"{path} over {PACKAGED_LABEL}" if path is not None else PACKAGED_LABEL)
+    """The packaged experiments.yaml, overlaid by the YAML at ``path`` (only the keys it changes)
+    and then by ``overrides`` (a dict, dotted keys allowed); a bad key or value is a
+    ``ConfigError`` naming the file (or 'overrides') and the dotted key."""
+    cfg = config.load(ExperimentConfig, path, overrides)
+    return replace(cfg, source=f"{path} over {PACKAGED_LABEL}" if path is not None else PACKAGED_LABEL)
 
 
 def check_methods(methods) -> list[str]:
