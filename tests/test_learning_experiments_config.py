@@ -83,7 +83,8 @@ def test_the_studies_overlay_changes_only_what_it_lists(monkeypatch):
     packaged = ex.load_experiment_config()
     ext = ex.load_experiment_config(STUDIES / "experiments_ext2k.yaml")
     assert (ext.episodes, ext.runs_dir) == (2000, "runs/exp-ext2k")
-    assert ext.train == dataclasses.replace(packaged.train, env_config=ENV_EXTENDED)
+    assert ext.train == dataclasses.replace(packaged.train, env_config=ENV_EXTENDED, num_envs=2, vector="async",
+                                            ppo_config="studies/config/ppo_per_env.yaml")
     assert dataclasses.replace(ext, episodes=packaged.episodes, runs_dir=packaged.runs_dir, train=packaged.train,
                                source=packaged.source) == packaged
 

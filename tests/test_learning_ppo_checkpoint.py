@@ -17,7 +17,8 @@ NVEC = (5, 5, 3)
 
 
 def cfg(**train):
-    base = {"rollout_steps": 16, "vector": "sync", "tensorboard": False, "progress_bar": False,
+    base = {"rollout_steps": 16, "vector": "sync", "num_envs": 2, "batch_workers": 1,
+            "tensorboard": False, "progress_bar": False,
             "checkpoint_every": 20, "keep_checkpoints": 10}
     base.update(train)
     return load_config(ppo={"minibatch_size": 32, "epochs": 2}, train=base)

@@ -16,7 +16,8 @@ TOY_PPO = {"minibatch_size": 64}    # 256-sample rollouts -> 4 minibatches
 
 
 def toy_cfg(**train):
-    base = {"rollout_steps": 128, "vector": "sync", "tensorboard": False, "progress_bar": False,
+    base = {"rollout_steps": 128, "vector": "sync", "num_envs": 2, "batch_workers": 1,
+            "tensorboard": False, "progress_bar": False,
             "checkpoint_every": 1000}
     base.update(train)
     return load_config(ppo=TOY_PPO, train=base)

@@ -231,7 +231,7 @@ def _main() -> None:
     ap.add_argument("--resume", action="store_true")
     args = ap.parse_args()
     pcfg, tcfg = load_config(ppo={"minibatch_size": args.minibatch_size},
-                             train={"vector": args.vector, "num_envs": args.num_envs, "seed": args.seed,
+                             train={"vector": args.vector, "num_envs": args.num_envs, "batch_workers": 1, "seed": args.seed,
                                     "rollout_steps": args.rollout_steps})
     tr = Trainer(ToyIntersectionEnv, ToyScheduler(seed=args.seed), args.run_dir, pcfg, tcfg)
     t0 = time.monotonic()

@@ -68,9 +68,11 @@ class TrainConfig:
     update_threads: int = setting(lo=0)
     seed: int = setting(lo=0)
 
-    def _check(self) -> None:
-        if self.batch_workers > self.num_envs:
-            raise invalid("batch_workers", f"must be <= num_envs ({self.num_envs}), got {self.batch_workers}")
+    @property
+    def workers(self) -> int:
+        """Processes of the batched vector env: batch_workers, never more than one per env
+        (so ``--num-envs 1`` needs no second setting)."""
+        return min(self.batch_workers, self.num_envs)
 
 
 @config_class(PPO_YAML)

@@ -102,7 +102,7 @@ class Trainer:
             raise ValueError(f"episodes must be a positive int, got {episodes!r}")
         torch.set_num_threads(self.tcfg.torch_threads)
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        venv = make_vector_env(self.env_fn, self.tcfg.num_envs, self.tcfg.vector, self.tcfg.batch_workers)
+        venv = make_vector_env(self.env_fn, self.tcfg.num_envs, self.tcfg.vector, self.tcfg.workers)
         writer = None
         bar = None
         try:
