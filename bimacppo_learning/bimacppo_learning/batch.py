@@ -160,7 +160,7 @@ class IntersectionBatch:
         """One decision for every slot (all must be running).
 
         Returns obs (B, obs_dim) float32, rewards (B,), terminated (B,), truncated (B,) and one
-        info dict per slot (``x_imr`` always; the episode summary when it ended)."""
+        info dict per slot (``x_imr`` and ``lane_change`` always; the episode summary when it ended)."""
         actions = np.asarray(actions)
         if actions.shape != (self.B, len(self.nvec)):
             raise ValueError(f"actions must have shape ({self.B}, {len(self.nvec)}), got {actions.shape}")
@@ -206,7 +206,7 @@ class IntersectionBatch:
             rew[i] = step_reward(rcfg, bool(changed[i]), outcome, sc.n_sv, int(w.n_pcp),
                                  float(w.ego_tuple()[2]), float(w.dist_to_goal()))
             self.returns[i] += rew[i]
-            info: dict[str, Any] = {"x_imr": self.x_imr[i].copy()}
+            info: dict[str, Any] = {"x_imr": self.x_imr[i].copy(), "lane_change": bool(changed[i])}
             if res.done:
                 term[i] = outcome in ("success", "collision")
                 trunc[i] = outcome == "timeout"
