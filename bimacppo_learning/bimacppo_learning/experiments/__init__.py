@@ -11,7 +11,7 @@ docs/experiments.md says how to run it and why each constant is what it is.
 Modules, one job each: ``config`` (experiments.yaml on bimacppo_common.config: the sections,
 their checks, where outputs live), ``runs`` (what is on disk and still valid),
 ``pool`` (Ray: one task per run, progress, failures), ``train`` / ``evaluation`` /
-``overtake`` (the steps), ``traffic`` (the slow-SV wrapper), ``stats`` (means, spreads,
+``overtake`` (the steps), ``traffic`` (the overtaking env), ``stats`` (means, spreads,
 curves), ``results`` (the markdown page and figures), ``cli``.
 This package namespace re-exports their public names.
 """
