@@ -57,7 +57,9 @@ def execute(fn: Callable[..., str], kwargs: Mapping[str, Any], log: str, num_cpu
 
     torch.set_num_threads(max(1, int(num_cpus)))
     if events is not None:
-        events.put(name)
+        # fire and forget: a task blocked in ray.get (Queue.put waits on the queue actor) lends
+        # its CPUs back to the scheduler, which then starts another task on them
+        events.actor.put_nowait.remote(name)
     log_path = Path(log)
     log_path.parent.mkdir(parents=True, exist_ok=True)
     sys.stdout.flush()
