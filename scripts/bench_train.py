@@ -92,7 +92,7 @@ def main() -> int:
     base = rows[0][1]
     print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
           f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}\n")
-    print("| path | train config | episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC (CPU s, all workers) | "
+    print("| path | train config | episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC s (solve_batch time, summed over processes) | "
           "policy s | update s | other s | peak RSS main / largest worker (MiB) | success, last 200 |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows:
