@@ -6,7 +6,7 @@ decided exactly once. Converters reject anything they cannot map unambiguously w
 a :class:`MessageError` instead of guessing, because a silently wrong array (NaN
 state, swapped joints, mismatched lengths) would drive the vehicle on garbage.
 
-Only standard message types are used (DESIGN §3): custom .msg packages do not build
+Only standard message types are used: custom .msg packages do not build
 on the pip-installed ROS here, and standard types are what lets another source
 (another simulator, a bridge, a recorded drive) replace the world node.
 """
