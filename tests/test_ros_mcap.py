@@ -173,6 +173,18 @@ def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
     node.destroy_subscription(gsub)
 
 
+def test_recorder_never_overwrites_an_existing_file_or_directory(tmp_path):
+    """A recorder restarted with a crashed run's output name must not truncate that recording."""
+    crashed = tmp_path / "run.mcap"
+    crashed.write_bytes(b"the crash's recording")
+    for target, what in ((crashed, "an existing file"), (tmp_path, "a directory")):
+        rec = _start("bimacppo_sim.ros.recorder", str(target))
+        out, _ = rec.communicate(timeout=PROC_TIMEOUT)
+        assert rec.returncode == 2 and "Traceback" not in out, out
+        assert f"is {what}: refusing to overwrite" in out, out
+    assert crashed.read_bytes() == b"the crash's recording"
+
+
 def test_recorder_killed_leaves_readable_prefix(node, tmp_path):
     # last in this file on purpose: a SIGKILLed participant lingers in DDS discovery (and its
     # shared-memory ports) for seconds, which would disturb the tests after it

@@ -247,13 +247,22 @@ def iter_mcap(path, report: Optional[ReadReport] = None, topics=None) -> Iterato
 
 
 def open_writer(path, chunk_size: int, compression: str = "zstd", library: str = "bimacppo-recorder"):
-    """An MCAP writer (ros2 profile) on a file we own; returns (writer, file)."""
+    """An MCAP writer (ros2 profile) on a NEW file; returns (writer, file).
+
+    An existing path is refused, never truncated: a recorder restarted after a crash with the same
+    output name must not destroy the crash's readable recording. ValueError names the path."""
     from mcap.writer import CompressionType, Writer
 
     comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
     if compression not in comp:
         raise ValueError(f"compression must be one of {sorted(comp)}, got {compression!r}")
-    f = open(path, "wb")
+    try:
+        f = open(path, "xb")
+    except FileExistsError:
+        kind = "a directory" if os.path.isdir(path) else "an existing file"
+        raise ValueError(f"{path} is {kind}: refusing to overwrite it; name a new output file") from None
+    except OSError as exc:
+        raise ValueError(f"cannot create {path}: {exc.strerror}") from None
     w = Writer(f, chunk_size=int(chunk_size), compression=comp[compression])
     w.start(profile=PROFILE, library=library)
     return w, f
