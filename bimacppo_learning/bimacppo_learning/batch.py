@@ -160,7 +160,8 @@ class IntersectionBatch:
         """One decision for every slot (all must be running).
 
         Returns obs (B, obs_dim) float32, rewards (B,), terminated (B,), truncated (B,) and one
-        info dict per slot (``x_imr`` and ``lane_change`` always; the episode summary when it ended)."""
+        info dict per slot (always: ``x_imr``, ``lane_change`` and ``commands``, the [a, δ] applied
+        at each tick of this decision; the episode summary when it ended)."""
         actions = np.asarray(actions)
         if actions.shape != (self.B, len(self.nvec)):
             raise ValueError(f"actions must have shape ({self.B}, {len(self.nvec)}), got {actions.shape}")
@@ -177,7 +178,9 @@ class IntersectionBatch:
         results: list = [None] * self.B
         alive = np.ones(self.B, bool)
         X0 = self._X0
-        for _ in range(acfg.decision_every):
+        applied = np.full((acfg.decision_every, self.B, 2), np.nan)   # commands the worlds got, per tick
+        ticks = np.zeros(self.B, np.int64)
+        for k in range(acfg.decision_every):
             for i in range(self.B):
                 X0[i] = self.worlds[i].ego_tuple()
             sol = self.ctrl.solve_batch(X0, self.x_imr, self.u_prev)
@@ -187,6 +190,8 @@ class IntersectionBatch:
                     self.mpc_failures[i] += 1
                 res = self.worlds[i].step(sol.u[i])
                 self.u_prev[i] = sol.u[i]
+                applied[k, i] = sol.u[i]
+                ticks[i] += 1
                 results[i] = res
                 if res.done:
                     alive[i] = False
@@ -206,7 +211,8 @@ class IntersectionBatch:
             rew[i] = step_reward(rcfg, bool(changed[i]), outcome, sc.n_sv, int(w.n_pcp),
                                  float(w.ego_tuple()[2]), float(w.dist_to_goal()))
             self.returns[i] += rew[i]
-            info: dict[str, Any] = {"x_imr": self.x_imr[i].copy(), "lane_change": bool(changed[i])}
+            info: dict[str, Any] = {"x_imr": self.x_imr[i].copy(), "lane_change": bool(changed[i]),
+                                    "commands": applied[:ticks[i], i].copy()}
             if res.done:
                 term[i] = outcome in ("success", "collision")
                 trunc[i] = outcome == "timeout"

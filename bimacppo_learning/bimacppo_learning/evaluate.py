@@ -28,7 +28,7 @@ import pickle
 import queue
 import warnings
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
@@ -37,6 +37,8 @@ import numpy as np
 from bimacppo_sim import TASKS
 
 from bimacppo_planner.policy import CheckpointError
+
+from .comfort import Comfort
 
 EVAL_SEED_BASE = 1_000_000
 OUTCOMES = ("success", "collision", "timeout")
@@ -61,6 +63,7 @@ class CellResult:
     counts: Counter
     returns: list
     policy: str = POLICY    # POLICY or RANDOM
+    comfort: Comfort | None = None   # ride comfort of the commands applied in the cell's episodes
 
     @property
     def n(self) -> int:
@@ -159,6 +162,7 @@ def _run_cell(job: tuple) -> tuple:
     nvec = tuple(int(n) for n in env.cfg.nvec)
     counts: Counter = Counter()
     returns = []
+    comfort = Comfort(delta_max=float(env.world.cfg.vehicle.delta_max), dt=float(env.world.dt))
     try:
         for k in range(episodes):
             seed = eval_seed(task, n_sv, k)
@@ -166,14 +170,17 @@ def _run_cell(job: tuple) -> tuple:
             if callable(begin):
                 begin(seed)
             done = False
+            commands = []
             while not done:
                 obs, _, term, trunc, info = env.step(check_action(actor(obs), nvec))
+                commands.append(info["commands"])
                 done = term or trunc
+            comfort.add_episode(np.concatenate(commands))
             counts[info["outcome"]] += 1
             returns.append(float(info["episode_return"]))
     finally:
         env.close()
-    return label, task, n_sv, counts, returns
+    return label, task, n_sv, counts, returns, comfort
 
 
 def _job_error(job: tuple, exc: BaseException) -> tuple:
@@ -324,7 +331,7 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
                 jobs.append(((RANDOM, int(random_seed)), cfg, map_id, t, n, int(episodes), mpc_solver))
 
     def collect(r: tuple) -> None:
-        cell = CellResult(r[1], r[2], r[3], r[4], r[0])
+        cell = CellResult(r[1], r[2], r[3], r[4], r[0], r[5])
         if cell.policy == RANDOM:
             _RANDOM_CACHE[json.dumps([map_id, cfg.to_dict(), cell.task, cell.n_sv, int(episodes), mpc_solver,
                                       int(random_seed)])] = cell
@@ -384,16 +391,32 @@ def to_markdown(results: list[CellResult], title: str = "") -> str:
             lines.append(f"| {TASKS[t]}, random policy | " + " | ".join(_row(rand, t, n_svs)) + " |")
     if rand:
         lines += ["", "random policy: uniform random actions on the same scenario seeds (the floor)."]
+    if any(c.comfort is not None and c.comfort.ticks for c in mine):
+        lines += ["", "Ride comfort (the policy's cells): ticks at full steering lock (%) / lock-to-lock "
+                      "reversals between consecutive ticks (%) / RMS jerk (m/s³)", "",
+                  "| task | " + " | ".join(f"N_sv={n} lock / reversals / jerk" for n in n_svs) + " |", sep]
+        for t in sorted({c.task for c in mine}):
+            row = []
+            for n in n_svs:
+                c = by.get((t, n))
+                q = None if c is None else c.comfort
+                row.append("–" if q is None or not q.ticks else
+                           f"{q.full_lock_pct:.1f} / {q.reversal_pct:.1f} / {q.rms_jerk:.1f}")
+            lines.append(f"| {TASKS[t]} | " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
 
 
 def to_csv(results: list[CellResult]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["task", "n_sv", "episodes", "success_pct", "collision_pct", "timeout_pct", "mean_return"])
+    w.writerow(["task", "n_sv", "episodes", "success_pct", "collision_pct", "timeout_pct", "mean_return",
+                "full_lock_pct", "lock_reversal_pct", "rms_jerk"])
     for c in results:
+        q = c.comfort
+        ride = ["nan"] * 3 if q is None or not q.ticks else \
+            [f"{q.full_lock_pct:.2f}", f"{q.reversal_pct:.2f}", f"{q.rms_jerk:.3f}"]
         w.writerow([TASKS[c.task], c.n_sv, c.n, f"{c.pct('success'):.1f}", f"{c.pct('collision'):.1f}",
-                    f"{c.pct('timeout'):.1f}", f"{np.mean(c.returns) if c.returns else float('nan'):.3f}"])
+                    f"{c.pct('timeout'):.1f}", f"{np.mean(c.returns) if c.returns else float('nan'):.3f}", *ride])
     return buf.getvalue()
 
 

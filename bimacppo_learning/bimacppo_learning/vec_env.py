@@ -83,7 +83,7 @@ class BatchedVectorEnv(VectorEnv):
         self._obs[:] = obs
         infos: dict = {}
         for i in np.nonzero(term | trunc)[0]:
-            summary = {k: v for k, v in per_slot[i].items() if k not in ("x_imr", "lane_change")}
+            summary = {k: v for k, v in per_slot[i].items() if k not in ("x_imr", "lane_change", "commands")}
             infos = self._add_info(infos, summary, int(i))
         return obs, rew, term, trunc, infos
 
