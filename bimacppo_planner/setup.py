@@ -34,5 +34,7 @@ setup(
             "planner_node = bimacppo_planner.ros.planner_node:main",
             "bimacppo-graph = bimacppo_planner.ros.graph:main",
         ],
+        # planner classes the node's planner_class parameter may name (other packages add theirs)
+        "bimacppo.planners": ["default = bimacppo_planner.agent:HighLevelPlanner"],
     },
 )

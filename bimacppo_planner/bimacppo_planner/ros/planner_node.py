@@ -24,6 +24,7 @@ controller's watchdog then stops the vehicle).
 from __future__ import annotations
 
 import importlib
+import inspect
 from collections import OrderedDict
 
 import numpy as np
@@ -37,15 +38,39 @@ from bimacppo_sim.ros.tick_follower import TickFollower
 DEFAULT_CLASS = "bimacppo_planner.agent:HighLevelPlanner"
 
 
+PLANNER_GROUP = "bimacppo.planners"
+PLANNER_METHODS = ("load", "reset", "step")
+
+
 def load_class(spec: str):
-    """``module:Class`` -> the class (ValueError naming what is missing)."""
+    """The planner class ``spec`` names: an entry point of the ``bimacppo.planners`` group
+    (``default`` is HighLevelPlanner; other packages add their own), or ``module:Class``.
+
+    Only a class with the planner interface (``load``, ``reset``, ``step``) is accepted, so the
+    parameter cannot reach an arbitrary callable (``os:system``) or an unprotected loader
+    (``torch.serialization:load``). ValueError names what is wrong."""
+    spec = str(spec).strip()
+    if ":" not in spec:
+        from importlib.metadata import entry_points
+
+        found = [ep for ep in entry_points(group=PLANNER_GROUP) if ep.name == spec]
+        if not found:
+            names = sorted(ep.name for ep in entry_points(group=PLANNER_GROUP))
+            raise ValueError(f"planner_class {spec!r} is neither 'package.module:Class' nor a "
+                             f"registered planner (entry points {PLANNER_GROUP}: {names})")
+        spec = found[0].value
     mod, _, name = spec.partition(":")
     if not mod or not name:
         raise ValueError(f"planner_class must look like 'package.module:Class', got {spec!r}")
     try:
-        return getattr(importlib.import_module(mod), name)
+        obj = getattr(importlib.import_module(mod), name)
     except (ImportError, AttributeError) as exc:
         raise ValueError(f"planner_class {spec!r} is not importable: {exc}") from None
+    missing = [m for m in PLANNER_METHODS if not callable(getattr(obj, m, None))]
+    if not inspect.isclass(obj) or missing:
+        raise ValueError(f"planner_class {spec!r} is not a planner class (a class with "
+                         f"{', '.join(PLANNER_METHODS)}; missing: {missing or 'not a class'})")
+    return obj
 
 
 def make_planner(spec: str, policy_path: str, map_id: str):

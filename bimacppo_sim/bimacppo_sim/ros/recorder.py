@@ -32,7 +32,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from . import interfaces as I
 from . import mcap_io
-from .runtime import run_single
+from .runtime import param_range, run_single
+
+MIN_PERIOD_S = 0.01   # shortest discovery / flush period: a timer at 0 s fires on every spin
 
 STRING_ARRAY = ParameterDescriptor(type=ParameterType.PARAMETER_STRING_ARRAY)
 
@@ -102,6 +104,11 @@ class McapRecorder(Node):
         chunk = int(p("chunk_size").value)
         if chunk <= 0 or self.depth <= 0:
             raise ValueError("mcap_recorder: chunk_size and queue_depth must be > 0")
+        # a period of 0 would be a timer firing on every spin (a busy loop), a negative one an RCLError
+        discovery = float(param_range(p("discovery_period_s").value, "discovery_period_s", I.RECORDER_NODE,
+                                      lo=MIN_PERIOD_S, hi=3600.0))
+        flush = float(param_range(p("flush_period_s").value, "flush_period_s", I.RECORDER_NODE,
+                                  lo=MIN_PERIOD_S, hi=3600.0))
         os.makedirs(os.path.dirname(self.path) or ".", exist_ok=True)
         self._writer, self._file = mcap_io.open_writer(self.path, chunk, str(p("compression").value))
         self._writer.add_metadata("rosbag2", {"ros_distro": "jazzy"})
@@ -113,8 +120,8 @@ class McapRecorder(Node):
         self.counts: Dict[str, int] = {}
         self._closed = False
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(float(p("discovery_period_s").value), self.discover, clock=steady)
-        self.create_timer(float(p("flush_period_s").value), self.flush, clock=steady)
+        self.create_timer(discovery, self.discover, clock=steady)
+        self.create_timer(flush, self.flush, clock=steady)
         self.get_logger().info(f"recording to {self.path}")   # first: the topic lines below belong to it
         self.discover()
 

@@ -16,7 +16,8 @@ import threading
 from typing import Callable, List, Optional, Sequence
 
 import rclpy
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
+                              NameValidationException)
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
@@ -24,6 +25,13 @@ from rclpy.utilities import remove_ros_args
 SPIN_TIMEOUT_S = 0.05
 EXIT_CONFIG_ERROR = 2
 ParameterException = (InvalidParameterTypeException, InvalidParameterValueException)
+# what building a node from bad parameters raises besides ValueError: an invalid topic, service or
+# node name (a name parameter), and rcl's own refusal of a value it checks (e.g. a timer period)
+try:
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy_impl
+    SetupException = (*ParameterException, NameValidationException, _rclpy_impl.RCLError)
+except (ImportError, AttributeError):  # pragma: no cover - other rclpy layouts
+    SetupException = (*ParameterException, NameValidationException)
 DRAIN_ROUNDS = 50
 """spin_once(0) calls after a stop request, so messages already delivered get handled."""
 
@@ -195,7 +203,7 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
     try:
         try:
             node = make_node(args)
-        except (ValueError, FileNotFoundError, LookupError, *ParameterException) as exc:
+        except (ValueError, FileNotFoundError, LookupError, *SetupException) as exc:
             print(f"error: {one_line(exc)}", file=sys.stderr)
             return EXIT_CONFIG_ERROR
         ex = SingleThreadedExecutor()

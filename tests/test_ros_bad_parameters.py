@@ -1,0 +1,37 @@
+"""Bad parameters end a node with one ``error:`` line and exit 2: never a traceback, never a
+node that starts anyway (a busy-looping timer, an arbitrary callable behind planner_class)."""
+import subprocess
+import sys
+
+import pytest
+
+CASES = [
+    ("bimacppo_curriculum.ros.curriculum_node", ["-p", "world_node:=bad name!"], "Invalid service name"),
+    ("bimacppo_curriculum.ros.curriculum_node", ["-p", "result_topic:=bad topic"], "Invalid topic name"),
+    ("bimacppo_sim.ros.recorder", ["-p", "discovery_period_s:=-1.0"], "discovery_period_s must be in"),
+    ("bimacppo_sim.ros.recorder", ["-p", "flush_period_s:=0.0"], "flush_period_s must be in"),
+    ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=os:system"], "is not a planner class"),
+    ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=torch.serialization:load"],
+     "is not a planner class"),
+    ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=nonesuch"], "entry points bimacppo.planners"),
+]
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("module, params, message", CASES)
+def test_bad_parameter_is_one_error_line_and_exit_2(module, params, message, tmp_path):
+    args = [str(tmp_path / "rec.mcap")] if module.endswith("recorder") else []
+    out = subprocess.run([sys.executable, "-m", module, *args, "--ros-args", *params], capture_output=True,
+                         text=True, timeout=120, cwd=tmp_path)
+    text = out.stdout + out.stderr
+    assert out.returncode == 2 and "Traceback" not in text, text
+    errors = [line for line in text.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message in errors[0], text
+    assert not (tmp_path / "rec.mcap").exists()        # refused before anything was written
+
+
+def test_the_default_planner_is_a_registered_planner_class():
+    from bimacppo_planner.agent import HighLevelPlanner
+    from bimacppo_planner.ros.planner_node import DEFAULT_CLASS, load_class
+
+    assert load_class("default") is HighLevelPlanner is load_class(DEFAULT_CLASS)
