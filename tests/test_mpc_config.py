@@ -82,3 +82,14 @@ def test_replace_validates_and_accepts_nested_dicts():
         cfg.replace(fast={"nope": 1})
     with pytest.raises(ValueError, match="unknown"):
         cfg.replace(nope=1)
+
+
+def test_horizon_has_an_upper_bound():
+    """A horizon of millions would make the controller's start-up hang instead of failing."""
+    from bimacppo_mpc import MPCConfig
+    from bimacppo_mpc.config import MAX_HORIZON
+
+    cfg = MPCConfig.load()
+    assert cfg.replace(horizon=MAX_HORIZON).horizon == MAX_HORIZON
+    with pytest.raises(ValueError, match=r"horizon: must be <= 200"):
+        cfg.replace(horizon=10_000_000)

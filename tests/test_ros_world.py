@@ -54,3 +54,24 @@ def test_world_resends_the_running_goal_with_its_stamp():
 def test_goal_resend_can_be_switched_off():
     stamps, _ = _goals_received(0.0, 1.5)
     assert stamps == []                   # only the latched sample, which this reader does not take
+
+
+def test_run_time_parameter_changes_are_applied_or_refused_with_a_reason():
+    """scenario.* change at run time (the curriculum's channel); everything else is read at
+    start-up, so a change is refused with a reason instead of being accepted and ignored."""
+    from bimacppo_sim.ros.world_node import WorldNode
+
+    rclpy.init()
+    try:
+        world = WorldNode()
+        ok = world.set_parameters([Parameter("scenario.n_sv", value=2)])[0]
+        assert ok.successful and world.get_parameter("scenario.n_sv").value == 2
+        bad = world.set_parameters([Parameter("scenario.n_sv", value=9)])[0]
+        assert not bad.successful and "n_sv" in bad.reason
+        for name, value in (("rate_factor", -5.0), ("rate_factor", 2.0), ("mode", "realtime")):
+            res = world.set_parameters([Parameter(name, value=value)])[0]
+            assert not res.successful and "read at start-up" in res.reason, (name, res.reason)
+        assert world.get_parameter("rate_factor").value != -5.0
+        world.destroy_node()
+    finally:
+        rclpy.try_shutdown()

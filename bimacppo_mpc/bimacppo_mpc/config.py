@@ -20,6 +20,7 @@ CONFIG_DIR = pathlib.Path(__file__).resolve().parent / "config"
 DEFAULT_PATH = CONFIG_DIR / "mpc.yaml"
 
 HESSIANS = ("exact", "gauss_newton")
+MAX_HORIZON = 200   # steps (20 s at dt = 0.1): far beyond use; a larger N only makes start-up hang
 INITIAL_GUESSES = ("shifted", "hold", "zero", "brake", "speed")
 
 
@@ -119,6 +120,8 @@ class MPCConfig:
         _check(self.wheelbase > 0, "wheelbase", f"must be > 0, got {self.wheelbase}")
         _check(self.dt > 0, "dt", f"must be > 0, got {self.dt}")
         _int_at_least("horizon", self.horizon, 1)
+        _check(self.horizon <= MAX_HORIZON, "horizon",
+               f"must be <= {MAX_HORIZON} steps, got {self.horizon} (the dense solve grows with N^3)")
         # a = 0 must be admissible: standing still and cruising are then always feasible,
         # which is what makes the speed-bound tube of docs/mpc.md non-empty.
         _check(self.a_min <= 0.0 <= self.a_max and self.a_min < self.a_max, "a_min/a_max",

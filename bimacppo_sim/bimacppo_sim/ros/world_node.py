@@ -133,12 +133,16 @@ class WorldNode(Node):
         return Scenario(n_sv=n_sv, task=task, seed=seed)
 
     def _on_set_parameters(self, params) -> SetParametersResult:
+        """Run-time changes are applied or refused with a reason, never accepted and ignored:
+        the scenario.* parameters are read at each reset (how the curriculum picks episodes);
+        every other parameter is read once at start-up."""
         cur = dict(zip(("scenario.n_sv", "scenario.task", "scenario.seed"), self._scenario_params()))
         for prm in params:
-            if prm.name in ("mode", "map_id"):
-                return SetParametersResult(successful=False, reason=f"{prm.name} is fixed at start-up")
-            if prm.name in cur:
-                cur[prm.name] = prm.value
+            if prm.name not in cur:
+                return SetParametersResult(successful=False, reason=f"{prm.name} is read at start-up: restart "
+                                                                    "the world to change it (only scenario.* "
+                                                                    "change at run time)")
+            cur[prm.name] = prm.value
         try:
             self._check_scenario(tuple(cur.values()))
         except (ValueError, TypeError) as exc:
