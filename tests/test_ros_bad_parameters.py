@@ -35,3 +35,32 @@ def test_the_default_planner_is_a_registered_planner_class():
     from bimacppo_planner.ros.planner_node import DEFAULT_CLASS, load_class
 
     assert load_class("default") is HighLevelPlanner is load_class(DEFAULT_CLASS)
+
+
+@pytest.mark.ros
+def test_params_file_keys_no_node_declares_are_found_and_the_shipped_files_have_none(tmp_path):
+    rclpy = pytest.importorskip("rclpy")
+    from bimacppo_curriculum.ros.curriculum_node import CurriculumNode
+    from bimacppo_mpc.ros.controller_node import ControllerNode
+    from bimacppo_planner.ros.planner_node import PlannerNode
+    from bimacppo_sim.ros.runtime import undeclared_file_parameters
+    from bimacppo_sim.ros.world_node import WorldNode
+    from conftest import REPO
+
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("controller:\n  ros__parameters:\n    watchdog_timout_s: 0.3\n    solver: fast\n"
+                    "/**:\n  ros__parameters:\n    use_sim_time: false\n")
+    rclpy.init()
+    try:
+        nodes = {"world": WorldNode(), "controller": ControllerNode(), "planner": PlannerNode(),
+                 "curriculum": CurriculumNode()}
+        assert undeclared_file_parameters(nodes["controller"], ["--params-file", str(typo)]) == ["watchdog_timout_s"]
+        files = {"world": "bimacppo_sim", "controller": "bimacppo_mpc", "planner": "bimacppo_planner",
+                 "curriculum": "bimacppo_curriculum"}
+        for name, pkg in files.items():
+            (shipped,) = (REPO / pkg / "config").glob("*.params.yaml")
+            assert undeclared_file_parameters(nodes[name], ["--params-file", str(shipped)]) == [], shipped
+        for n in nodes.values():
+            n.destroy_node()
+    finally:
+        rclpy.try_shutdown()

@@ -191,6 +191,49 @@ def close_nodes(nodes: List) -> None:
             pass
 
 
+def undeclared_file_parameters(node, argv: Sequence[str]) -> List[str]:
+    """Keys that a ``--params-file`` of ``argv`` gives this node but the node never declared.
+    rclpy ignores them without a word, so a misspelt key (``watchdog_timout_s``) would leave the
+    default in force unnoticed."""
+    import yaml
+
+    def flat(d, prefix=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}"
+
+    args = list(argv)
+    files = [args[i + 1] for i, a in enumerate(args[:-1]) if a == "--params-file"]
+    me = {node.get_name(), "/" + node.get_name(), node.get_fully_qualified_name(), "/**"}
+    found = set()
+    for f in files:
+        try:
+            with open(f) as fh:
+                doc = yaml.safe_load(fh) or {}
+        except (OSError, yaml.YAMLError):  # rcl already parsed (or refused) the file at init
+            continue
+        for key, section in (doc.items() if isinstance(doc, dict) else []):
+            if key in me and isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
+                found |= set(flat(section["ros__parameters"]))
+    return sorted(n for n in found if not node.has_parameter(n))
+
+
+def warn_undeclared_file_parameters(node, argv: Sequence[str]) -> List[str]:
+    """One warning per key of the params file that is not a parameter of ``node`` (with the
+    nearest declared name); returns the keys."""
+    import difflib
+
+    unknown = undeclared_file_parameters(node, argv)
+    declared = list(node.list_parameters([], 0).names)
+    for name in unknown:
+        near = difflib.get_close_matches(name, declared, n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        node.get_logger().warning(f"params file sets {name!r}, which is not a parameter of this node{hint}: ignored")
+    return unknown
+
+
 def run_single(make_node: Callable[[List[str]], object], argv=None,
                done_attr: str = "done") -> int:
     """``main`` body for one node per process (what ``ros2 run`` starts)."""
@@ -206,6 +249,7 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
         except (ValueError, FileNotFoundError, LookupError, *SetupException) as exc:
             print(f"error: {one_line(exc)}", file=sys.stderr)
             return EXIT_CONFIG_ERROR
+        warn_undeclared_file_parameters(node, sys.argv if argv is None else argv)
         ex = SingleThreadedExecutor()
         ex.add_node(node)
         spin(ex, stop, done=lambda: bool(getattr(node, done_attr, False)))
