@@ -173,6 +173,38 @@ def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
     node.destroy_subscription(gsub)
 
 
+def test_topic_offered_with_two_types_records_the_documented_one(node, tmp_path):
+    """A second publisher of another type on a contract topic must not cost the recording."""
+    path = tmp_path / "two_types.mcap"
+    # another process (one DDS participant cannot offer one topic with two types) keeps a
+    # std_msgs/String publisher on the command topic
+    foreign = subprocess.Popen([sys.executable, "-c", (
+        "import rclpy, time\nfrom std_msgs.msg import String\nrclpy.init()\nn = rclpy.create_node('foreign')\n"
+        f"p = n.create_publisher(String, {I.TOPIC_COMMAND!r}, 10)\nt = time.monotonic() + 30\n"
+        "while time.monotonic() < t:\n    p.publish(String(data='not a command'))\n    time.sleep(0.02)\n")])
+    t_end = time.monotonic() + PROC_TIMEOUT
+    while not node.get_publishers_info_by_topic(I.TOPIC_COMMAND) and time.monotonic() < t_end:
+        _spin(node, 0.05)
+    cmd = node.create_publisher(I.JointTrajectory, I.TOPIC_COMMAND, I.STATE_QOS)
+    before = _sub_gids(node, I.TOPIC_COMMAND)
+    rec = _start("bimacppo_sim.ros.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
+                 "-p", f"topics:=['{I.TOPIC_COMMAND}']")
+    _wait_new_subscriber(node, I.TOPIC_COMMAND, before)
+    _spin(node, 0.3)
+    for k in range(20):
+        cmd.publish(I.command_to_trajectory([0.5, 0.01 * k], k + 1))
+        _spin(node, 0.01)
+    _spin(node, 0.5)
+    rc, out = _stop(rec, signal.SIGTERM)
+    foreign.kill()
+    foreign.wait()
+    node.destroy_publisher(cmd)
+    assert rc == 0 and "Traceback" not in out, out
+    assert "recording the documented trajectory_msgs/msg/JointTrajectory" in out, out
+    got = [(sch.name, ch.topic) for sch, ch, _ in mcap_io.iter_mcap(path, mcap_io.ReadReport())]
+    assert len(got) >= 15 and set(got) == {("trajectory_msgs/msg/JointTrajectory", I.TOPIC_COMMAND)}, got
+
+
 def test_recorder_never_overwrites_an_existing_file_or_directory(tmp_path):
     """A recorder restarted with a crashed run's output name must not truncate that recording."""
     crashed = tmp_path / "run.mcap"

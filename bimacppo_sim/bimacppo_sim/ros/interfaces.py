@@ -47,6 +47,20 @@ TOPIC_PLANNER_MARKERS = "/planner/markers"
 TOPIC_COMMAND = "/control/command"
 TOPIC_RESULT = "/episode/result"
 TOPIC_PLANNER_RESULT = "/planner/episode_result"
+# The documented type of every topic of the contract (docs/interfaces.md): what a reader
+# subscribes with, and what the recorder records when a topic is offered with several types.
+TOPIC_TYPES = {
+    TOPIC_CLOCK: "rosgraph_msgs/msg/Clock",
+    TOPIC_EGO_ODOM: "nav_msgs/msg/Odometry",
+    TOPIC_OBJECTS: "trajectory_msgs/msg/MultiDOFJointTrajectory",
+    TOPIC_MARKERS: "visualization_msgs/msg/MarkerArray",
+    TOPIC_GOAL: "geometry_msgs/msg/PoseStamped",
+    TOPIC_REFERENCE: "nav_msgs/msg/Odometry",
+    TOPIC_PLANNER_MARKERS: "visualization_msgs/msg/MarkerArray",
+    TOPIC_COMMAND: "trajectory_msgs/msg/JointTrajectory",
+    TOPIC_RESULT: "diagnostic_msgs/msg/DiagnosticStatus",
+    TOPIC_PLANNER_RESULT: "diagnostic_msgs/msg/DiagnosticStatus",
+}
 
 SRV_WORLD_RESET = "/world/reset"
 SRV_WORLD_SET_PARAMETERS = "/world/set_parameters"

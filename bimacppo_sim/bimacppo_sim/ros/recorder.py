@@ -138,14 +138,23 @@ class McapRecorder(Node):
         for topic, types in self.get_topic_names_and_types():
             if topic in self._subs or not self._selected(topic):
                 continue
-            if len(types) != 1:
-                self.get_logger().warning(f"{topic}: several types {types}, not recorded", once=True)
-                continue
-            infos = self.get_publishers_info_by_topic(topic)
+            # a topic of the contract is recorded with its documented type only (whichever
+            # publisher appeared first); another topic needs a single type to be recorded
+            type_name = I.TOPIC_TYPES.get(topic, types[0] if len(types) == 1 else None)
+            others = [t for t in types if t != type_name]
+            if others:
+                if type_name is None:
+                    self.get_logger().warning(f"{topic}: several types {types}, not recorded", once=True)
+                    continue
+                self.get_logger().warning(f"{topic}: offered as {types}; recording the documented "
+                                          f"{type_name}, not {others}", once=True)
+            if type_name not in types:
+                continue                 # only other types so far: wait for the documented one
+            infos = [i for i in self.get_publishers_info_by_topic(topic) if i.topic_type == type_name]
             if not infos:
                 continue
             try:
-                self._subscribe(topic, types[0], infos)
+                self._subscribe(topic, type_name, infos)
             except (LookupError, mcap_io.DefinitionNotFound) as exc:
                 self.get_logger().warning(f"{topic}: not recorded: {exc}")
                 self._subs[topic] = None
