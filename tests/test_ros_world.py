@@ -75,3 +75,40 @@ def test_run_time_parameter_changes_are_applied_or_refused_with_a_reason():
         world.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+def test_realtime_world_never_applies_a_command_stamped_in_the_future():
+    """Commands with a = +3 stamped far ahead (then none): the world drops them and brakes; it
+    must not accelerate the EV until the episode ends."""
+    from bimacppo_sim.ros.world_node import WorldNode
+
+    rclpy.init()
+    ex = SingleThreadedExecutor()
+    nodes = []
+    try:
+        world = WorldNode(parameter_overrides=[Parameter("mode", value="realtime"),
+                                               Parameter("rate_factor", value=1.0),
+                                               Parameter("scenario.n_sv", value=0)])
+        pub_node = Node("future_commands")
+        pub = pub_node.create_publisher(I.JointTrajectory, I.TOPIC_COMMAND, I.STATE_QOS)
+        nodes = [world, pub_node]
+        for n in nodes:
+            ex.add_node(n)
+        v0 = float(world.world.ego[2])
+        assert v0 > 0.5                      # the EV starts moving: acceleration would show
+        far = (2 ** 31 - 1) * I.NS_PER_S
+        speeds = []
+        t_end = time.monotonic() + 2.0
+        k = 0
+        while time.monotonic() < t_end:
+            if k < 30:                       # a burst of future commands, then none
+                pub.publish(I.command_to_trajectory([3.0, 0.0], far - k))
+                k += 1
+            ex.spin_once(timeout_sec=0.01)
+            speeds.append(float(world.world.ego[2]))
+        assert world.dropped.get(I.TOPIC_COMMAND, 0) >= 1
+        assert max(speeds) <= v0 + 1e-9 and speeds[-1] < v0, (v0, max(speeds), speeds[-1])
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()

@@ -9,7 +9,8 @@ Two clocking modes (parameter ``mode``):
   that joined late or a lost sample never deadlocks the loop.
 * ``realtime``: a wall timer steps every dt / ``rate_factor`` with the latest command; a
   command older than ``command_timeout_s`` (sim time) or none at all means brake
-  (a_min of the vehicle config) with the steering held.
+  (a_min of the vehicle config) with the steering held (a warning says so). A command
+  stamped after the current tick answers no state and is dropped.
 
 While an episode runs, its goal is re-published every ``goal_resend_period_s`` (wall;
 same stamp, so receivers see a repeat, not a new episode). /goal_pose is latched, but a
@@ -218,6 +219,11 @@ class WorldNode(Node):
         u, _ = I.trajectory_to_command(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
         if self.mode == "realtime":
+            if stamp > self.stamp_ns():
+                # a command can only answer a state that exists: one stamped after the current
+                # tick would otherwise never go stale and be applied until the episode ends
+                raise I.MessageError(f"stamped {(stamp - self.stamp_ns()) / I.NS_PER_S:.3f} s after the "
+                                     f"current tick (no state to answer yet)")
             self._last_cmd = (stamp, u)
             return
         if self.active and stamp == self.stamp_ns():
@@ -237,8 +243,12 @@ class WorldNode(Node):
         if not self.active:
             return
         cmd = self._last_cmd
-        if cmd is None or self.stamp_ns() - cmd[0] > self.command_timeout_ns:
+        age = None if cmd is None else self.stamp_ns() - cmd[0]
+        if age is None or not 0 <= age <= self.command_timeout_ns:
             u = np.array([self.brake, self._delta_hold])
+            if cmd is not None:
+                self.get_logger().warning(f"no command within command_timeout_s (newest is {age / I.NS_PER_S:.2f} s "
+                                          "old): braking", throttle_duration_sec=5.0)
         else:
             u = cmd[1]
         self._step(u)
