@@ -112,6 +112,22 @@ MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 
+# The documented profile of every topic of the contract (docs/interfaces.md, "QoS profiles"),
+# next to TOPIC_TYPES: what a source re-offers when it has no record of the publishers' QoS
+# (the MCAP player on a bag written without rosbag2's offered_qos_profiles).
+TOPIC_QOS = {
+    TOPIC_CLOCK: CLOCK_QOS,
+    TOPIC_EGO_ODOM: STATE_QOS,
+    TOPIC_OBJECTS: STATE_QOS,
+    TOPIC_MARKERS: MARKER_QOS,
+    TOPIC_GOAL: LATCHED_QOS,
+    TOPIC_REFERENCE: STATE_QOS,
+    TOPIC_PLANNER_MARKERS: MARKER_QOS,
+    TOPIC_COMMAND: STATE_QOS,
+    TOPIC_RESULT: RESULT_QOS,
+    TOPIC_PLANNER_RESULT: RESULT_QOS,
+}
+
 
 class MessageError(ValueError):
     """A message that cannot be converted without guessing (names the topic field at fault)."""
