@@ -14,6 +14,13 @@ written and handed to the OS at once, and a partial chunk is written at least ev
 period; the file has no summary then, and ``mcap_io.iter_mcap`` (or any reader that
 scans records) still reads it. SIGINT/SIGTERM drain pending callbacks and write the
 summary: nothing received is lost.
+
+Bag metadata: like rosbag2_storage_mcap, a metadata record named ``rosbag2`` whose key
+``serialized_metadata`` holds the bag's metadata as YAML (rosbag2's BagMetadata encoding:
+the body of metadata.yaml's ``rosbag2_bagfile_information``, version 9, storage
+``mcap``, ``ros_distro: jazzy``). One is written at the start (so a killed recording
+still names its format) and a final one with the message counts before the summary;
+rosbag2 reads them in order, so the final one wins.
 """
 from __future__ import annotations
 
@@ -24,6 +31,7 @@ import time
 from datetime import datetime
 from typing import Dict, List
 
+import yaml
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -111,13 +119,15 @@ class McapRecorder(Node):
                                   lo=MIN_PERIOD_S, hi=3600.0))
         os.makedirs(os.path.dirname(self.path) or ".", exist_ok=True)
         self._writer, self._file = mcap_io.open_writer(self.path, chunk, str(p("compression").value))
-        self._writer.add_metadata("rosbag2", {"ros_distro": "jazzy"})
+        self._topic_meta: Dict[str, dict] = {}
+        self._time_range: List[int] = []        # first and last log time (ns)
         self._lock = threading.Lock()
+        self.counts: Dict[str, int] = {}
+        self._write_bag_metadata()
         self._schemas: Dict[str, int] = {}
         self._channels: Dict[str, int] = {}
         self._subs = {}
         self._seq: Dict[int, int] = {}
-        self.counts: Dict[str, int] = {}
         self._closed = False
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(discovery, self.discover, clock=steady)
@@ -174,6 +184,10 @@ class McapRecorder(Node):
             cid = self._writer.register_channel(topic, mcap_io.MESSAGE_ENCODING,
                                                 self._schemas[type_name], meta)
             self._channels[topic] = cid
+            self._topic_meta[topic] = {
+                "name": topic, "type": type_name, "serialization_format": mcap_io.MESSAGE_ENCODING,
+                "offered_qos_profiles": meta["offered_qos_profiles"],
+                "type_description_hash": meta.get("topic_type_hash", "")}
         self._subs[topic] = self.create_subscription(
             msg_cls, topic, lambda data, c=cid, t=topic: self._on_message(c, t, data),
             adapted_request(records, self.depth), raw=True)
@@ -191,6 +205,35 @@ class McapRecorder(Node):
                                      publish_time=t, sequence=seq)
             self._file.flush()  # a chunk the writer just completed goes to the OS now
             self.counts[topic] = self.counts.get(topic, 0) + 1
+            if self._time_range:
+                self._time_range[1] = t
+            else:
+                self._time_range = [t, t]
+
+    def bag_metadata(self) -> dict:
+        """rosbag2's BagMetadata (version 9) of what has been recorded so far."""
+        start, end = self._time_range or [0, 0]
+        duration = {"nanoseconds": int(end - start)}
+        starting = {"nanoseconds_since_epoch": int(start)}
+        total = sum(self.counts.values())
+        name = os.path.basename(self.path)
+        return {
+            "version": 9, "storage_identifier": "mcap", "duration": duration, "starting_time": starting,
+            "message_count": total,
+            "topics_with_message_count": [{"topic_metadata": dict(m), "message_count": self.counts.get(t, 0)}
+                                          for t, m in sorted(self._topic_meta.items())],
+            # rosbag2's compression fields name its own file/message compression (none here);
+            # the MCAP chunk compression is stated by each chunk
+            "compression_format": "", "compression_mode": "",
+            "relative_file_paths": [name],
+            "files": [{"path": name, "starting_time": starting, "duration": duration, "message_count": total}],
+            "custom_data": {},
+            "ros_distro": "jazzy",
+        }
+
+    def _write_bag_metadata(self) -> None:
+        text = yaml.safe_dump(self.bag_metadata(), default_flow_style=False, sort_keys=False)
+        self._writer.add_metadata("rosbag2", {"serialized_metadata": text})
 
     def flush(self) -> None:
         """Close the open chunk (if any) and hand it to the OS: bounds what a kill can lose."""
@@ -204,6 +247,7 @@ class McapRecorder(Node):
             if self._closed:
                 return
             self._closed = True
+            self._write_bag_metadata()
             self._writer.finish()
             self._file.close()
         total = sum(self.counts.values())
