@@ -181,21 +181,182 @@ def qos_from_yaml(text: str) -> List[QosRecord]:
 # ----------------------------------------------------------------------------- reading
 @dataclass
 class ReadReport:
-    """What a defensive read found: message count and, if it stopped early, why."""
+    """What a defensive read found: message count and, if it stopped early or skipped, why.
+
+    ``lost`` counts, per topic, the messages of damaged chunks that were skipped (known from
+    the chunks' message indexes; a chunk without a readable index adds to ``lost_unknown``).
+    """
     messages: int = 0
     complete: bool = True
     error: str = ""
     topics: Dict[str, int] = field(default_factory=dict)
+    chunks_skipped: int = 0
+    lost: Dict[str, int] = field(default_factory=dict)
+    lost_unknown: int = 0
+
+    def fail(self, reason: str) -> None:
+        self.complete = False
+        self.error = f"{self.error}; {reason}" if self.error else reason
+
+    def count(self, topic: str) -> None:
+        self.messages += 1
+        self.topics[topic] = self.topics.get(topic, 0) + 1
+
+
+def _chunk_records(chunk) -> list:
+    """Every record of a chunk, CRC-checked (a chunk written without CRC cannot be checked)."""
+    from mcap.stream_reader import breakup_chunk
+    return breakup_chunk(chunk, validate_crc=True)
+
+
+def _index_counts(buf: bytes, channels: Dict[int, object]) -> Optional[Dict[str, int]]:
+    """Messages per topic listed by the MessageIndex records in ``buf`` (None if unreadable)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import MessageIndex
+    counts: Dict[str, int] = {}
+    pos = 0
+    try:
+        while pos + 9 <= len(buf):
+            opcode, length = buf[pos], int.from_bytes(buf[pos + 1:pos + 9], "little")
+            body = buf[pos + 9:pos + 9 + length]
+            if len(body) != length:
+                return None
+            if opcode == Opcode.MESSAGE_INDEX:
+                mi = MessageIndex.read(ReadDataStream(io.BytesIO(body)))
+                ch = channels.get(mi.channel_id)
+                topic = ch.topic if ch is not None else f"<channel {mi.channel_id}>"
+                counts[topic] = counts.get(topic, 0) + len(mi.records)
+            pos += 9 + length
+    except Exception:
+        return None
+    return counts
+
+
+def _lose(report: ReadReport, counts: Optional[Dict[str, int]], wanted) -> None:
+    if counts is None:
+        report.lost_unknown += 1
+        return
+    for topic, n in counts.items():
+        if wanted is None or topic in wanted:
+            report.lost[topic] = report.lost.get(topic, 0) + n
+
+
+def _iter_indexed(f, summary, report: ReadReport, wanted) -> Iterator[tuple]:
+    """Messages of an indexed file in log-time order (ties: file order); damaged chunks skipped.
+
+    Chunks are decoded lazily, when the earliest message they may hold is due, so memory
+    stays at the chunks that overlap in time (the way the mcap SeekingReader merges them).
+    """
+    import heapq
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk, Message
+
+    heap = [(ci.message_start_time, 0, ci.chunk_start_offset, 0, ci) for ci in summary.chunk_indexes]
+    heapq.heapify(heap)
+    while heap:
+        t, kind, offset, idx, item = heapq.heappop(heap)
+        if kind == 1:
+            yield item
+            continue
+        ci = item
+        try:
+            f.seek(ci.chunk_start_offset)
+            buf = f.read(ci.chunk_length)
+            if len(buf) != ci.chunk_length:
+                raise EOFError(f"{len(buf)} of {ci.chunk_length} bytes")
+            records = _chunk_records(Chunk.read(ReadDataStream(io.BytesIO(buf[9:]))))
+        except Exception as exc:
+            report.chunks_skipped += 1
+            report.fail(f"chunk at byte {ci.chunk_start_offset} skipped ({type(exc).__name__}: {exc})")
+            f.seek(ci.chunk_start_offset + ci.chunk_length)
+            _lose(report, _index_counts(f.read(ci.message_index_length), summary.channels), wanted)
+            continue
+        for i, rec in enumerate(records):
+            if not isinstance(rec, Message):
+                continue
+            ch = summary.channels.get(rec.channel_id)
+            if ch is None or (wanted is not None and ch.topic not in wanted):
+                continue
+            sch = summary.schemas.get(ch.schema_id) if ch.schema_id else None
+            heapq.heappush(heap, (rec.log_time, 1, ci.chunk_start_offset, i, (sch, ch, rec)))
+
+
+def _iter_linear(f, report: ReadReport, wanted) -> Iterator[tuple]:
+    """Messages in file order, record by record, up to the first unreadable record.
+
+    A chunk that fails its CRC (or does not decompress) is skipped and the scan goes on
+    after it: its length field still tells where the next record starts.
+    """
+    from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas: Dict[int, object] = {}
+    channels: Dict[int, object] = {}
+    lost: Optional[Dict[str, int]] = None   # the message indexes after a skipped chunk
+
+    def message(rec):
+        ch = channels.get(rec.channel_id)
+        if ch is None:
+            report.lost_unknown += 1
+            return None
+        if wanted is not None and ch.topic not in wanted:
+            return None
+        return schemas.get(ch.schema_id) if ch.schema_id else None, ch, rec
+
+    try:
+        for rec in StreamReader(f, emit_chunks=True).records:
+            if isinstance(rec, MessageIndex):
+                if lost is not None:
+                    ch = channels.get(rec.channel_id)
+                    topic = ch.topic if ch is not None else f"<channel {rec.channel_id}>"
+                    lost[topic] = lost.get(topic, 0) + len(rec.records)
+                continue
+            if lost is not None:
+                _lose(report, lost if lost else None, wanted)
+                lost = None
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+            elif isinstance(rec, Message):
+                item = message(rec)
+                if item is not None:
+                    yield item
+            elif isinstance(rec, Chunk):
+                try:
+                    inner = _chunk_records(rec)
+                except Exception as exc:
+                    report.chunks_skipped += 1
+                    report.fail(f"a chunk skipped ({type(exc).__name__}: {exc})")
+                    lost = {}
+                    continue
+                for r in inner:
+                    if isinstance(r, Schema):
+                        schemas[r.id] = r
+                    elif isinstance(r, Channel):
+                        channels[r.id] = r
+                    elif isinstance(r, Message):
+                        item = message(r)
+                        if item is not None:
+                            yield item
+    except Exception as exc:
+        report.fail(f"stopped after {report.messages} messages ({type(exc).__name__}: {exc})")
+    if lost is not None:
+        _lose(report, lost if lost else None, wanted)
 
 
 def iter_mcap(path, report: Optional[ReadReport] = None, topics=None) -> Iterator[tuple]:
-    """Yield (schema, channel, message) in file order from a possibly truncated/corrupt MCAP.
+    """Yield (schema, channel, message) from a possibly damaged MCAP.
 
-    A complete file is read through its summary; a file without a valid footer (recorder
-    killed) or with a damaged index is scanned record by record, yielding everything up to
-    the first unreadable byte. ``report`` (if given) says how far it got and why it stopped.
+    A file with a valid summary is read through its chunk indexes in log-time order (a
+    writer may store messages grouped by topic; playback needs time order). A file without
+    a valid footer (recorder killed) or without chunk indexes is scanned record by record
+    in file order, up to the first unreadable byte. Chunk CRCs are checked: a damaged chunk
+    is skipped (its messages counted in ``report.lost``) and reading goes on after it.
+    ``report`` (if given) says how far it got and what it skipped.
     """
-    from mcap.reader import NonSeekingReader, SeekingReader
+    from mcap.reader import SeekingReader
 
     report = report if report is not None else ReadReport()
     wanted = set(topics) if topics else None
@@ -203,47 +364,70 @@ def iter_mcap(path, report: Optional[ReadReport] = None, topics=None) -> Iterato
     try:
         f = open(path, "rb")
     except OSError as exc:
-        report.complete, report.error = False, f"cannot open {path}: {exc}"
+        report.fail(f"cannot open {path}: {exc}")
         return
     with f:
-        use_summary = False
+        summary = None
         try:
-            reader = SeekingReader(f)
-            summary = reader.get_summary()
-            use_summary = summary is not None and len(summary.chunk_indexes) > 0
+            summary = SeekingReader(f, validate_crcs=True).get_summary()
         except Exception as exc:  # no footer / garbage at the end: fall back to scanning
-            report.complete, report.error = False, f"no valid summary ({type(exc).__name__}: {exc})"
-        if use_summary:
-            try:
-                for sch, ch, msg in reader.iter_messages(log_time_order=False):
-                    if wanted is None or ch.topic in wanted:
-                        report.messages += 1
-                        report.topics[ch.topic] = report.topics.get(ch.topic, 0) + 1
-                        yield sch, ch, msg
-                return
-            except Exception as exc:
-                # indexed read failed part-way: rescan linearly, skipping what was yielded
-                report.complete = False
-                report.error = f"indexed read failed ({type(exc).__name__}: {exc})"
-                skip = report.messages
-                report.messages, report.topics = 0, {}
+            report.fail(f"no valid summary ({type(exc).__name__}: {exc})")
+        if summary is not None and summary.chunk_indexes:
+            items = _iter_indexed(f, summary, report, wanted)
         else:
-            skip = 0
-        f.seek(0, io.SEEK_SET)
-        try:
-            n = 0
-            for sch, ch, msg in NonSeekingReader(f).iter_messages(log_time_order=False):
-                if wanted is not None and ch.topic not in wanted:
-                    continue
-                n += 1
-                report.messages += 1
-                report.topics[ch.topic] = report.topics.get(ch.topic, 0) + 1
-                if n > skip:
-                    yield sch, ch, msg
-        except Exception as exc:
-            report.complete = False
-            report.error = (report.error + "; " if report.error else "") + \
-                f"stopped after {report.messages} messages ({type(exc).__name__}: {exc})"
+            f.seek(0, io.SEEK_SET)
+            items = _iter_linear(f, report, wanted)
+        for sch, ch, msg in items:
+            report.count(ch.topic)
+            yield sch, ch, msg
+
+
+# ----------------------------------------------------------------------------- rosbag2 directories
+class BagError(ValueError):
+    """A bag path that cannot be played (names the path and the reason)."""
+
+
+def bag_files(path) -> Tuple[List[str], Dict[str, str]]:
+    """The MCAP files of a bag, in play order, and the QoS its metadata.yaml records per topic.
+
+    ``path`` is an ``.mcap`` file (itself, no QoS) or a rosbag2 directory: its
+    ``metadata.yaml`` lists the files (``relative_file_paths``, the order rosbag2 wrote them
+    when it split the bag). Only the ``mcap`` storage is readable here; sqlite3 bags and
+    file-compressed bags are refused with a BagError naming the reason.
+    """
+    path = os.fspath(path)
+    if os.path.isfile(path):
+        return [path], {}
+    if not os.path.isdir(path):
+        raise FileNotFoundError(f"no such file: {path}")
+    meta_path = os.path.join(path, "metadata.yaml")
+    if not os.path.isfile(meta_path):
+        files = sorted(n for n in os.listdir(path) if n.endswith(".mcap"))
+        if not files:
+            raise BagError(f"{path} is a directory without metadata.yaml or .mcap files")
+        return [os.path.join(path, n) for n in files], {}
+    try:
+        with open(meta_path) as fh:
+            info = (yaml.safe_load(fh) or {})["rosbag2_bagfile_information"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+        raise BagError(f"{meta_path} is no rosbag2 metadata ({type(exc).__name__}: {exc})") from None
+    storage = str(info.get("storage_identifier", "mcap"))
+    if storage != "mcap":
+        raise BagError(f"{path}: storage {storage!r} is not readable here (only 'mcap')")
+    if str(info.get("compression_mode", "") or "").lower() == "file":
+        raise BagError(f"{path}: file-compressed bags ({info.get('compression_format')}) are not readable here")
+    names = info.get("relative_file_paths") or [f.get("path") for f in info.get("files") or []]
+    files = [os.path.join(path, os.path.basename(str(n))) for n in names if n]
+    missing = [f for f in files if not os.path.isfile(f)]
+    if not files or missing:
+        raise BagError(f"{path}: files listed in metadata.yaml are missing: {missing or 'none listed'}")
+    qos = {}
+    for t in info.get("topics_with_message_count") or []:
+        tm = (t or {}).get("topic_metadata") or {}
+        prof = tm.get("offered_qos_profiles")
+        if tm.get("name") and prof:
+            qos[str(tm["name"])] = prof if isinstance(prof, str) else yaml.safe_dump(prof)
+    return files, qos
 
 
 def open_writer(path, chunk_size: int, compression: str = "zstd", library: str = "bimacppo-recorder"):

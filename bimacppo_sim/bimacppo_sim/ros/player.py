@@ -3,6 +3,7 @@
 Usage::
 
     mcap_player run.mcap --ros-args -p rate:=1.0 -p topics:="['/clock','/ego/odom','/objects','/goal_pose']"
+    mcap_player path/to/rosbag2_dir                       # metadata.yaml + .mcap files
 
 ``rate`` scales the recorded gaps (2.0 = twice as fast); ``rate:=0.0`` publishes as fast
 as the executor allows. ``timing`` picks which gaps: ``log`` (default) the recorded log
@@ -20,16 +21,35 @@ can answer them; the recorded /planner/* and /control/command are then never rep
 matched subscribers (every consumer of the world's state reads it: planner and
 controller make 2), then waits ``start_delay_s``: a replay is
 open loop, and a tick published before the planner and controller are matched is lost
-for good (volatile QoS). Stand-in use therefore passes ``wait_subscribers:=2``. Each topic is re-offered with the QoS recorded in its
-channel metadata (a latched /goal_pose stays latched). A truncated or corrupt file is
-played up to its first unreadable byte and the reason is logged; a missing file or one
-without any message is a one-line error, not a traceback.
+for good (volatile QoS). Stand-in use therefore passes ``wait_subscribers:=2``.
+
+Any ROS 2 MCAP plays, whoever wrote it:
+
+* the path is an ``.mcap`` file or a rosbag2 directory (``metadata.yaml`` + its ``.mcap``
+  files, played in the listed order as one time line; sqlite3 storage is refused);
+* messages go out in log-time order, also when the writer stored them grouped by topic;
+* each topic is re-offered with the QoS recorded in its channel metadata (else the
+  directory's metadata.yaml); without a record, a topic of the contract gets its
+  documented profile (``interfaces.TOPIC_QOS``: /goal_pose latched), any other topic
+  reliable/volatile;
+* ``timing:=clock`` on a bag without /clock messages falls back to log timing with one
+  warning (a stand-in run should not die of a missing clock: its log times still pace it);
+* a topic recorded with a type other than the one already on the graph (``/rosout`` as
+  std_msgs/String next to every node's rcl_interfaces/Log) is skipped with a warning; a
+  topic of the contract recorded with its documented type is played regardless;
+* chunk CRCs are checked: a damaged chunk is skipped with a warning and playback goes on
+  with the next one, so no garbled message is published (a writer that stored no CRC,
+  e.g. rosbag2's default, cannot be checked);
+* at the end one line per topic says how many messages were played and skipped, and why.
+
+A truncated file is played up to its first unreadable byte and the reason is logged; a
+missing file or one without any message is a one-line error, not a traceback.
 """
 from __future__ import annotations
 
 import os
 import time
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -41,7 +61,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from . import interfaces as I
 from . import mcap_io
 from .recorder import import_message_type, string_list
-from .runtime import run_single
+from .runtime import SetupException, run_single
 
 BATCH = 200
 """Messages published per timer callback at most, so the executor stays responsive."""
@@ -54,9 +74,17 @@ WAIT_TOPIC = I.TOPIC_EGO_ODOM
 WAIT_LOG_PERIOD_S = 5.0
 
 
-def offered_qos(metadata: Dict[str, str], min_depth: int) -> QoSProfile:
-    """The QoS to re-offer: the recorded publishers' (if they agree), else reliable/volatile."""
-    recs = mcap_io.qos_from_yaml(metadata.get("offered_qos_profiles", ""))
+def offered_qos(metadata: Dict[str, str], min_depth: int, topic: str = "",
+                fallback_yaml: str = "") -> QoSProfile:
+    """The QoS to re-offer on ``topic``.
+
+    The recorded publishers' policies (channel metadata, else ``fallback_yaml`` from a
+    rosbag2 metadata.yaml) if they agree; without any record the contract's documented
+    profile of the topic (``interfaces.TOPIC_QOS``); else reliable/volatile. Volatile
+    topics get at least ``min_depth`` so a burst at ``rate:=0`` is not dropped by the writer.
+    """
+    recs = mcap_io.qos_from_yaml(metadata.get("offered_qos_profiles", "")) or \
+        mcap_io.qos_from_yaml(fallback_yaml)
     rel = ReliabilityPolicy.RELIABLE
     dur = DurabilityPolicy.VOLATILE
     depth = min_depth
@@ -66,11 +94,15 @@ def offered_qos(metadata: Dict[str, str], min_depth: int) -> QoSProfile:
         if all(r.durability == "transient_local" for r in recs):
             dur = DurabilityPolicy.TRANSIENT_LOCAL
             depth = max(1, max(r.depth for r in recs))
+    elif topic in I.TOPIC_QOS:
+        doc = I.TOPIC_QOS[topic]
+        rel, dur = doc.reliability, doc.durability
+        depth = doc.depth if dur == DurabilityPolicy.TRANSIENT_LOCAL else max(min_depth, doc.depth)
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=rel, durability=dur)
 
 
 class McapPlayer(Node):
-    """Publishes the messages of one MCAP file at recorded timing (scaled by ``rate``)."""
+    """Publishes the messages of one bag (file or rosbag2 directory) at recorded timing."""
 
     def __init__(self, path: Optional[str] = None, **kwargs) -> None:
         super().__init__(I.PLAYER_NODE, **kwargs)
@@ -89,8 +121,12 @@ class McapPlayer(Node):
         self.path = path or p("path").value
         if not self.path:
             raise ValueError("mcap_player: no file given (positional argument or -p path:=FILE.mcap)")
-        if not os.path.isfile(self.path):
+        if not os.path.exists(self.path):
             raise FileNotFoundError(f"mcap_player: no such file: {self.path}")
+        try:
+            self.files, self._bag_qos = mcap_io.bag_files(self.path)
+        except mcap_io.BagError as exc:
+            raise ValueError(f"mcap_player: {exc}") from None
         self.rate = float(p("rate").value)
         if not self.rate >= 0.0:
             raise ValueError(f"mcap_player: rate must be >= 0 (0 = as fast as possible), got {self.rate}")
@@ -107,15 +143,22 @@ class McapPlayer(Node):
         self.exclude = set(string_list(self, "exclude"))
         self.depth = int(p("queue_depth").value)
         self.linger_s = float(p("linger_s").value)
-        # a first pass finds every channel, so all publishers exist (and get matched during
+        # a first pass finds every topic, so all publishers exist (and get matched during
         # start_delay_s) before the first message goes out: nothing early is lost
-        self._pubs: Dict[int, object] = {}
+        self._pubs: Dict[str, Tuple[str, object]] = {}     # topic -> (type, publisher or None)
+        self._why: Dict[str, str] = {}                     # topic -> why it is not played
+        self.played: Dict[str, int] = {}
+        self.skipped: Dict[str, int] = {}
         scan = mcap_io.ReadReport()
-        for schema, channel, _ in mcap_io.iter_mcap(self.path, scan, topics=self.topics or None):
-            if channel.id not in self._pubs and channel.topic not in self.exclude:
+        for schema, channel, _ in self._iter(scan):
+            if channel.topic not in self._pubs and channel.topic not in self.exclude:
                 self._publisher(schema, channel)
+        if self.timing == "clock" and not scan.topics.get(I.TOPIC_CLOCK):
+            self.get_logger().warning(f"timing:=clock, but {self.path} has no {I.TOPIC_CLOCK} messages: "
+                                      "paced by the recorded log times instead")
+            self.timing = "log"
         self.report = mcap_io.ReadReport()
-        self._it = mcap_io.iter_mcap(self.path, self.report, topics=self.topics or None)
+        self._it = self._iter(self.report)
         self._finished_at: Optional[float] = None
         self._pending = None
         self._t0_time: Optional[int] = None
@@ -126,8 +169,7 @@ class McapPlayer(Node):
         self._start_delay = float(p("start_delay_s").value)
         self._start_at: Optional[float] = None if self.wait_subscribers else time.monotonic() + self._start_delay
         self._waiting_since = time.monotonic()
-        if self.wait_subscribers and not any(pb is not None and pb.topic_name == WAIT_TOPIC
-                                             for pb in self._pubs.values()):
+        if self.wait_subscribers and self._wait_pub() is None:
             raise ValueError(f"mcap_player: wait_subscribers needs {WAIT_TOPIC} among the played topics")
         self.published = 0
         self.done = False
@@ -135,21 +177,52 @@ class McapPlayer(Node):
         self._timer = self.create_timer(float(p("period_s").value), self._tick,
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
 
+    def _iter(self, report: mcap_io.ReadReport):
+        """Every message of every file of the bag, file after file (one time line)."""
+        for f in self.files:
+            yield from mcap_io.iter_mcap(f, report, topics=self.topics or None)
+
+    def _clashing_types(self, topic: str, type_name: str) -> list:
+        """Other types this topic already has on the graph (own publishers included)."""
+        for name, types in self.get_topic_names_and_types():
+            if name == topic:
+                return [t for t in types if t != type_name]
+        return []
+
+    def _skip(self, topic: str, type_name: str, why: str):
+        self.get_logger().warning(f"{topic}: not played ({why})")
+        self._pubs[topic] = (type_name, None)
+        self._why[topic] = why
+        return None
+
     def _publisher(self, schema, channel):
-        if channel.id in self._pubs:
-            return self._pubs[channel.id]
-        pub = None
+        topic = channel.topic
+        type_name = schema.name if schema is not None else ""
+        if topic in self._pubs:
+            known, pub = self._pubs[topic]
+            if known != type_name:   # another file of the bag with another type on this topic
+                self._why.setdefault(topic, f"also recorded as {type_name}, played as {known}")
+                return None
+            return pub
         if schema is None or channel.message_encoding != mcap_io.MESSAGE_ENCODING:
-            self.get_logger().warning(f"{channel.topic}: encoding {channel.message_encoding!r} "
-                                      "is not ROS 2 CDR, skipped")
-        else:
-            try:
-                cls = import_message_type(schema.name)
-                pub = self.create_publisher(cls, channel.topic, offered_qos(channel.metadata, self.depth))
-            except (LookupError, mcap_io.DefinitionNotFound) as exc:
-                self.get_logger().warning(f"{channel.topic}: skipped ({exc})")
-        self._pubs[channel.id] = pub
+            return self._skip(topic, type_name, f"encoding {channel.message_encoding!r} is not ROS 2 CDR")
+        try:
+            cls = import_message_type(type_name)
+        except (LookupError, mcap_io.DefinitionNotFound) as exc:
+            return self._skip(topic, type_name, str(exc))
+        others = self._clashing_types(topic, type_name)
+        if others and I.TOPIC_TYPES.get(topic) != type_name:
+            return self._skip(topic, type_name, f"recorded as {type_name}, but the graph has it as {others}")
+        qos = offered_qos(channel.metadata, self.depth, topic, self._bag_qos.get(topic, ""))
+        try:
+            pub = self.create_publisher(cls, topic, qos)
+        except SetupException as exc:   # e.g. rcl: this process already has the topic with another type
+            return self._skip(topic, type_name, f"cannot publish it as {type_name}: {str(exc).splitlines()[0]}")
+        self._pubs[topic] = (type_name, pub)
         return pub
+
+    def _wait_pub(self):
+        return self._pubs.get(WAIT_TOPIC, (None, None))[1]
 
     def _next(self):
         if self._pending is None:
@@ -188,16 +261,19 @@ class McapPlayer(Node):
             if pub is not None:
                 pub.publish(bytes(msg.data))
                 self.published += 1
+                self.played[channel.topic] = self.played.get(channel.topic, 0) + 1
+            else:
+                self.skipped[channel.topic] = self.skipped.get(channel.topic, 0) + 1
             self._pending = None
 
     def _matched(self) -> bool:
         """The /ego/odom publisher has ``wait_subscribers`` matched readers (logs while not)."""
-        pubs = [pb for pb in self._pubs.values() if pb is not None and pb.topic_name == WAIT_TOPIC]
-        if all(pb.get_subscription_count() >= self.wait_subscribers for pb in pubs):
+        pb = self._wait_pub()
+        if pb is None or pb.get_subscription_count() >= self.wait_subscribers:
             return True
         if time.monotonic() - self._waiting_since > WAIT_LOG_PERIOD_S:
             self._waiting_since = time.monotonic()
-            counts = {pb.topic_name: pb.get_subscription_count() for pb in pubs}
+            counts = {pb.topic_name: pb.get_subscription_count()}
             self.get_logger().info(f"waiting for {self.wait_subscribers} subscribers: {counts}")
         return False
 
@@ -218,6 +294,22 @@ class McapPlayer(Node):
                                       throttle_duration_sec=5.0)
             return None
 
+    def summary_lines(self) -> list:
+        """One line per topic: messages played, skipped and why (damaged chunks included)."""
+        lines = []
+        for topic in sorted(set(self.played) | set(self.skipped) | set(self.report.lost)):
+            why = []
+            if self.skipped.get(topic):
+                why.append(f"{self.skipped[topic]} {self._why.get(topic, 'not played')}")
+            if self.report.lost.get(topic):
+                why.append(f"{self.report.lost[topic]} in damaged chunks")
+            n_skip = self.skipped.get(topic, 0) + self.report.lost.get(topic, 0)
+            lines.append(f"{topic}: played {self.played.get(topic, 0)}, skipped {n_skip}"
+                         + (f" ({'; '.join(why)})" if why else ""))
+        if self.report.lost_unknown:
+            lines.append(f"{self.report.lost_unknown} damaged chunks or messages of unknown topic skipped")
+        return lines
+
     def _finish(self) -> None:
         self._finished_at = time.monotonic()
         if self.published == 0 and not self.report.complete:
@@ -228,12 +320,14 @@ class McapPlayer(Node):
                                       f"messages ({self.report.error})")
         else:
             self.get_logger().info(f"played {self.published} messages from {self.path}")
+        for line in self.summary_lines():
+            self.get_logger().info(f"summary {line}")
 
 
 def main(argv=None) -> int:
     def make(args):
         if len(args) > 1:
-            raise ValueError(f"usage: mcap_player [FILE.mcap] [--ros-args ...] (got {args})")
+            raise ValueError(f"usage: mcap_player [FILE.mcap | ROSBAG2_DIR] [--ros-args ...] (got {args})")
         return McapPlayer(path=args[0] if args else None)
     return run_single(make, argv)
 
