@@ -77,7 +77,12 @@ def _record(node, path, n_msgs, extra=()):
     rec = _start("bimacppo_sim.ros.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
                  *extra)
     _wait_new_subscriber(node, I.TOPIC_EGO_ODOM, before)
-    _spin(node, 0.3)  # let the match complete on the publisher side too
+    # the graph shows the subscriber before DDS has matched it to this publisher: wait for
+    # the publisher's own count, or the first messages go to nobody
+    t_end = time.monotonic() + PROC_TIMEOUT
+    while odom.get_subscription_count() < 1 and time.monotonic() < t_end:
+        _spin(node, 0.01)
+    _spin(node, 0.1)
     for k in range(n_msgs):
         odom.publish(I.state_to_odometry([float(k), 1.0, 2.0, 0.1], k + 1))
         _spin(node, 0.002)
