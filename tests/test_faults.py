@@ -1,4 +1,4 @@
-"""Fault injection into the real node graph over real DDS (project issue #6, docs/faults.md).
+"""Fault injection into the real node graph over real DDS (docs/faults.md).
 
 Groups (each starts its processes once):
 * ``graph``: lockstep world + planner + controller + curriculum + recorder as separate
