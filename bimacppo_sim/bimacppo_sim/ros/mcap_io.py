@@ -304,6 +304,16 @@ def _iter_linear(f, report: ReadReport, wanted) -> Iterator[tuple]:
             return None
         return schemas.get(ch.schema_id) if ch.schema_id else None, ch, rec
 
+    def take(rec):
+        """A schema or channel is remembered, a message returned as (schema, channel, message)."""
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec
+        elif isinstance(rec, Message):
+            return message(rec)
+        return None
+
     try:
         for rec in StreamReader(f, emit_chunks=True).records:
             if isinstance(rec, MessageIndex):
@@ -315,15 +325,7 @@ def _iter_linear(f, report: ReadReport, wanted) -> Iterator[tuple]:
             if lost is not None:
                 _lose(report, lost if lost else None, wanted)
                 lost = None
-            if isinstance(rec, Schema):
-                schemas[rec.id] = rec
-            elif isinstance(rec, Channel):
-                channels[rec.id] = rec
-            elif isinstance(rec, Message):
-                item = message(rec)
-                if item is not None:
-                    yield item
-            elif isinstance(rec, Chunk):
+            if isinstance(rec, Chunk):
                 try:
                     inner = _chunk_records(rec)
                 except Exception as exc:
@@ -331,15 +333,12 @@ def _iter_linear(f, report: ReadReport, wanted) -> Iterator[tuple]:
                     report.fail(f"a chunk skipped ({type(exc).__name__}: {exc})")
                     lost = {}
                     continue
-                for r in inner:
-                    if isinstance(r, Schema):
-                        schemas[r.id] = r
-                    elif isinstance(r, Channel):
-                        channels[r.id] = r
-                    elif isinstance(r, Message):
-                        item = message(r)
-                        if item is not None:
-                            yield item
+            else:
+                inner = (rec,)
+            for r in inner:
+                item = take(r)
+                if item is not None:
+                    yield item
     except Exception as exc:
         report.fail(f"stopped after {report.messages} messages ({type(exc).__name__}: {exc})")
     if lost is not None:
