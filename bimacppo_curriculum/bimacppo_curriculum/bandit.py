@@ -73,6 +73,23 @@ class RewardRescaler:
         self.r_max, self.r_min = vals
 
 
+def budget_scaling(c, total_episodes: int | None) -> tuple[int, float]:
+    """(N_BiMAB, step-size factor) for a run of ``total_episodes`` (None: unknown budget).
+
+    A fixed N_BiMAB lets a short run end before the bandit ever changes its sampling law (a
+    1,000-episode run with N_BiMAB = 1000 samples uniformly throughout). With ``min_syncs``, any
+    run syncs at least that often; with ``step_budget``, the step sizes shrink or grow with the
+    budget so that alpha * T, the weight change a whole run can make, is that of a
+    ``step_budget``-episode run at the configured alpha."""
+    n, scale = c.sync_interval, 1.0
+    if total_episodes is not None:
+        if c.min_syncs is not None:
+            n = max(1, min(n, total_episodes // c.min_syncs))
+        if c.step_budget is not None:
+            scale = c.step_budget / total_episodes
+    return n, scale
+
+
 class Exp3SLevel:
     """One level of the bandit: `rows` independent groups of `k` weights.
 
@@ -154,7 +171,8 @@ class _Exp3SScheduler(Scheduler):
     def __init__(self, config=None, seed: int = 0, total_episodes: int | None = None):
         super().__init__(config, seed, total_episodes)
         c = self.config
-        self.clusters = Exp3SLevel(1, self.n_clusters, c.initial_weight, c.eta, c.alpha_c, c.beta_c)
+        self.sync_interval, self.alpha_scale = budget_scaling(c, self.total_episodes)
+        self.clusters = Exp3SLevel(1, self.n_clusters, c.initial_weight, c.eta, c.alpha_c * self.alpha_scale, c.beta_c)
         self.rescaler = RewardRescaler(c.k0, c.k1, c.alpha_md)
         self.pending: list[list] = []   # [i, j, p_i, p_ij] per draw not yet updated
         self.n_syncs = 0
@@ -193,7 +211,7 @@ class _Exp3SScheduler(Scheduler):
         self.last_r_norm = r_norm
         self.clusters.reinforce(0, i, r_norm / p_i)          # eq. (14) r_hat_i, eq. (16)
         self._reinforce_arm(i, j, r_norm / p_ij)            # eq. (14) r_hat_ij, eq. (16)
-        if self.n_updates % self.config.sync_interval == 0:  # eq. (17), Algorithm 1 l. 11
+        if self.n_updates % self.sync_interval == 0:  # eq. (17), Algorithm 1 l. 11
             self.clusters.sync()
             self._sync_arms()
             self.n_syncs += 1
@@ -205,7 +223,8 @@ class _Exp3SScheduler(Scheduler):
         pass
 
     def _extra_log(self):
-        out = {"syncs": float(self.n_syncs), "last_r_norm": float(self.last_r_norm),
+        out = {"syncs": float(self.n_syncs), "sync_interval": float(self.sync_interval),
+               "last_r_norm": float(self.last_r_norm),
                # no history yet reads as 0: the rescaler then treats every return as r_norm = 0
                "r_max": 0.0 if self.rescaler.r_max is None else self.rescaler.r_max,
                "r_min": 0.0 if self.rescaler.r_min is None else self.rescaler.r_min}
@@ -260,7 +279,8 @@ class BiMAB(_Exp3SScheduler):
     def __init__(self, config=None, seed: int = 0, total_episodes: int | None = None):
         super().__init__(config, seed, total_episodes)
         c = self.config
-        self.arms = Exp3SLevel(self.n_clusters, self.n_arms, c.initial_weight, c.eta, c.alpha_a, c.beta_a)
+        self.arms = Exp3SLevel(self.n_clusters, self.n_arms, c.initial_weight, c.eta,
+                               c.alpha_a * self.alpha_scale, c.beta_a)
 
     def arm_probabilities(self, target=False):
         return self.arms.probs(target=target)

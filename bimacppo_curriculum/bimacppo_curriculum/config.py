@@ -71,6 +71,8 @@ class BiMABConfig(_Config):
     eta: float = setting(lo=0.0, hi=1.0, lo_open=True)
     initial_weight: float
     sync_interval: int = setting(lo=1)
+    min_syncs: int | None = setting(lo=1)
+    step_budget: int | None = setting(lo=1)
     k0: float = setting(**_POSITIVE)
     k1: float = setting(**_POSITIVE)
     alpha_md: float = setting(**_POSITIVE)
@@ -95,6 +97,8 @@ class RDConfig(_Config):
     eta: float = setting(lo=0.0, hi=1.0, lo_open=True)
     initial_weight: float
     sync_interval: int = setting(lo=1)
+    min_syncs: int | None = setting(lo=1)
+    step_budget: int | None = setting(lo=1)
     k0: float = setting(**_POSITIVE)
     k1: float = setting(**_POSITIVE)
     alpha_md: float = setting(**_POSITIVE)

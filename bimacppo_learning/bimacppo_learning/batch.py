@@ -31,6 +31,8 @@ from gymnasium.utils import seeding
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, observe, step_reward
 from bimacppo_sim import TASKS, Scenario, World, load_map
+from bimacppo_sim.config import DriverConfig
+from bimacppo_sim.drivers import junction_threatened, stop_line_distance
 
 RESET_OPTIONS = ("n_sv", "task", "scenario_seed", "n_slow")
 SEED_HIGH = 2 ** 31 - 1
@@ -90,6 +92,12 @@ class IntersectionBatch:
         self.lane_changes = np.zeros(B, np.int64)
         self.mpc_failures = np.zeros(B, np.int64)
         self.running = np.zeros(B, bool)      # reset and not yet finished
+        # whether the EV entered while the junction was threatened: the yield rule's threat test and
+        # stop line on the true world state (reported per episode; the reward.threat_entry shaping
+        # term pays on it). Crossing the line happens once per episode.
+        self._threat_cfg = DriverConfig.load()
+        self.crossed = np.zeros(B, bool)       # EV front past its stop line
+        self.threat_entries = np.zeros(B, bool)   # ... and it crossed while the junction was threatened
         self._X0 = np.zeros((B, 4))
         self.mpc_seconds = 0.0                # time spent in the NMPC: where training time goes
 
@@ -146,6 +154,8 @@ class IntersectionBatch:
         self.steps[i] = 0
         self.lane_changes[i] = 0
         self.mpc_failures[i] = 0
+        self.crossed[i] = False
+        self.threat_entries[i] = False
         self.running[i] = True
         info = {"n_sv": scenario.n_sv, "task": task_index(scenario.task), "scenario_seed": scenario.seed,
                 "n_pcp": int(w.n_pcp)}
@@ -180,6 +190,9 @@ class IntersectionBatch:
         X0 = self._X0
         applied = np.full((acfg.decision_every, self.B, 2), np.nan)   # commands the worlds got, per tick
         ticks = np.zeros(self.B, np.int64)
+        rcfg = self.cfg.reward
+        shaping = np.zeros(self.B)
+        tcfg = self._threat_cfg
         for k in range(acfg.decision_every):
             for i in range(self.B):
                 X0[i] = self.worlds[i].ego_tuple()
@@ -188,7 +201,15 @@ class IntersectionBatch:
             for i in np.nonzero(alive)[0]:
                 if not sol.ok[i]:
                     self.mpc_failures[i] += 1
+                threatened = False
+                if not self.crossed[i]:
+                    threatened = junction_threatened(self.worlds[i], tcfg)
                 res = self.worlds[i].step(sol.u[i])
+                if not self.crossed[i] and stop_line_distance(self.worlds[i], tcfg) <= 0.0:
+                    self.crossed[i] = True
+                    if threatened:        # the state the crossing tick was commanded from
+                        self.threat_entries[i] = True
+                        shaping[i] += rcfg.threat_entry
                 self.u_prev[i] = sol.u[i]
                 applied[k, i] = sol.u[i]
                 ticks[i] += 1
@@ -202,25 +223,25 @@ class IntersectionBatch:
         term = np.zeros(self.B, bool)
         trunc = np.zeros(self.B, bool)
         infos: list[dict] = []
-        rcfg = self.cfg.reward
         for i in range(self.B):
             w, res, sc = self.worlds[i], results[i], self.scenarios[i]
             self.steps[i] += 1
             self.lane_changes[i] += int(changed[i])
             outcome = res.outcome if res.done else None
             rew[i] = step_reward(rcfg, bool(changed[i]), outcome, sc.n_sv, int(w.n_pcp),
-                                 float(w.ego_tuple()[2]), float(w.dist_to_goal()))
+                                 float(w.ego_tuple()[2]), float(w.dist_to_goal())) + shaping[i]
             self.returns[i] += rew[i]
             info: dict[str, Any] = {"x_imr": self.x_imr[i].copy(), "lane_change": bool(changed[i]),
                                     "commands": applied[:ticks[i], i].copy()}
             if res.done:
-                term[i] = outcome in ("success", "collision")
-                trunc[i] = outcome == "timeout"
+                term[i] = outcome in ("success", "collision") or (outcome == "timeout" and rcfg.timeout_terminal)
+                trunc[i] = not term[i]
                 self.running[i] = False
                 info.update(outcome=outcome, n_sv=sc.n_sv, task=task_index(sc.task), scenario_seed=sc.seed,
                             n_pcp=int(w.n_pcp), episode_return=float(self.returns[i]),
                             episode_steps=int(self.steps[i]), lane_changes=int(self.lane_changes[i]),
                             mpc_failures=int(self.mpc_failures[i]), sim_time=float(w.time),
+                            threat_entry=bool(self.threat_entries[i]),
                             episode_ticks=int(w.steps))
             obs[i] = self.observe(i)
             infos.append(info)

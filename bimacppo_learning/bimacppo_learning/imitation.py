@@ -83,31 +83,33 @@ class ImitationConfig:
 
 
 class YieldTeacher:
-    """The scripted "yield" rule (bimacppo_sim.drivers.YieldDriver: threat test, stop line)
+    """The scripted "yield" rule (bimacppo_sim.drivers: its threat test and stop line)
     acting through the planner's action space, so that its decisions can be cloned."""
 
     def __init__(self, env, cfg: TeacherConfig):
         self.env, self.cfg = env, cfg
-        self._yd = None
+        self._drv = None
         self.committed = False
         self.go = None
 
     def reset(self) -> None:
-        from bimacppo_sim.drivers import YieldDriver
+        from bimacppo_sim.config import DriverConfig
 
-        self._yd = YieldDriver(self.env.world)
+        self._drv = DriverConfig.load()
         self.committed = False
         self.go = np.array(self.cfg.go[self.env.scenario.task])
 
     def act(self) -> np.ndarray:
-        if self._yd is None:
+        if self._drv is None:
             raise RuntimeError("YieldTeacher.act() before reset()")
+        from bimacppo_sim.drivers import junction_threatened, stop_line_distance
+
         c = self.cfg
         if self.committed or getattr(self.env.road, "H", None) is None:
             return self.go
         _, y, v, _ = self.env.world.ego_tuple()
-        d = self._yd._stop_distance(y)
-        if not self._yd._threat():
+        d = stop_line_distance(self.env.world, self._drv, y)
+        if not junction_threatened(self.env.world, self._drv):
             if d <= c.commit_margin:
                 self.committed = True
             return self.go

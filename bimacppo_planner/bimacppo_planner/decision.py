@@ -18,6 +18,7 @@ from bimacppo_common import config
 from bimacppo_common.config import ConfigError, Packaged, config_class, invalid, setting  # noqa: F401  (ConfigError: re-exported)
 
 TWO_PI = 2.0 * math.pi
+TIMEOUT_MODES = ("terminal", "truncate")
 
 
 def wrap_angle(a: float) -> float:
@@ -64,8 +65,15 @@ class RewardConfig:
     collision_base: float = setting(hi=0.0)   # penalties: <= 0
     alpha4: float = setting(hi=0.0)
     timeout: float
+    timeout_mode: str = setting(choices=TIMEOUT_MODES)
+    threat_entry: float = setting(hi=0.0)
     lane_change: float
     step: float
+
+    @property
+    def timeout_terminal(self) -> bool:
+        """Whether a timeout ends the MDP (no bootstrap) rather than truncating it."""
+        return self.timeout_mode == "terminal"
 
 
 @config_class(ENV_YAML)
@@ -190,9 +198,10 @@ def step_reward(cfg: RewardConfig, lane_change: bool, outcome: str | None = None
                 n_pcp: int = 0, ev_speed: float = 0.0, dist_to_goal: float = 0.0) -> float:
     """Eq. (26)-(28) for one decision: the per-step and lane-change terms, plus the terminal
     term when ``outcome`` is set. Shared by the environment and the ROS planner node, which
-    reports episode returns to the curriculum."""
+    reports episode returns to the curriculum. With ``timeout_mode: truncate`` a timeout adds
+    nothing: the episode is cut, not failed (see env.yaml)."""
     r = cfg.step + (cfg.lane_change if lane_change else 0.0)
-    if outcome is None:
+    if outcome is None or (outcome == "timeout" and not cfg.timeout_terminal):
         return r
     if outcome == "success":
         return r + cfg.success_base + cfg.alpha1 * n_sv + cfg.alpha2 * n_pcp

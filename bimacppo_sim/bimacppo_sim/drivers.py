@@ -16,6 +16,41 @@ from .config import DriverConfig
 DRIVERS = ("go", "yield")
 
 
+def junction_threatened(world, cfg: DriverConfig) -> bool:
+    """The "yield" rule's threat test: an active SV inside the junction box, or heading towards
+    it within ``watch_distance`` of the centre and less than ``safe_time_gap`` (at its own speed,
+    floored at 0.5 m/s) from the box. False on a map without a junction. It reads the SVs' true
+    states, so outside the scripted drivers it is privileged information (training rewards only,
+    never the policy's observation)."""
+    H = getattr(world.road, "H", None)
+    if H is None:
+        return False
+    for st, active in zip(world.sv_states(), world.sv_active):
+        if not active:
+            continue
+        x, y, v, psi = st
+        if math.hypot(x, y) > cfg.watch_distance:
+            continue
+        d = max(abs(x), abs(y)) - H
+        if d <= 0.0:
+            return True
+        towards = math.cos(psi) * (-x) + math.sin(psi) * (-y) > 0.0
+        if towards and d / max(v, 0.5) < cfg.safe_time_gap:
+            return True
+    return False
+
+
+def stop_line_distance(world, cfg: DriverConfig, y: float | None = None) -> float:
+    """Distance from the EV's front bumper to its stop line, ``stop_margin`` before the junction
+    box (the EV approaches from the south); +inf on a map without a junction."""
+    H = getattr(world.road, "H", None)
+    if H is None:
+        return math.inf
+    if y is None:
+        y = world.ego_tuple()[1]
+    return (-H - cfg.stop_margin) - (y + 0.5 * world.cfg.vehicle.length)
+
+
 class GoDriver:
     def __init__(self, world, config: DriverConfig | None = None):
         self.world = world
@@ -69,28 +104,10 @@ class YieldDriver(GoDriver):
         self._committed = False
 
     def _threat(self) -> bool:
-        w = self.world
-        H = getattr(w.road, "H", None)
-        if H is None:
-            return False
-        for st, active in zip(w.sv_states(), w.sv_active):
-            if not active:
-                continue
-            x, y, v, psi = st
-            if math.hypot(x, y) > self.cfg.watch_distance:
-                continue
-            d = max(abs(x), abs(y)) - H
-            if d <= 0.0:
-                return True
-            towards = math.cos(psi) * (-x) + math.sin(psi) * (-y) > 0.0
-            if towards and d / max(v, 0.5) < self.cfg.safe_time_gap:
-                return True
-        return False
+        return junction_threatened(self.world, self.cfg)
 
     def _stop_distance(self, y):
-        """Distance from the EV's front bumper to its stop line (EV comes from the south)."""
-        w = self.world
-        return (-w.road.H - self.cfg.stop_margin) - (y + 0.5 * w.cfg.vehicle.length)
+        return stop_line_distance(self.world, self.cfg, y)
 
     def act(self) -> np.ndarray:
         x, y, v, psi = self.world.ego_tuple()
