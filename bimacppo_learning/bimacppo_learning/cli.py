@@ -212,6 +212,9 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--env-config", type=Path, default=None,
                    help="YAML replacing the env config stored in the policy file (default: that one)")
     p.add_argument("--no-random-row", action="store_true", help="skip the random-policy baseline rows")
+    p.add_argument("--seed-set", choices=("validation", "test"), default="test",
+                   help="scenario seeds: validation (for choosing configs, checkpoints, variants) or test "
+                        "(reporting only); disjoint sets, default test")
     p.add_argument("--out", type=Path, default=None,
                    help="write OUT.md (the table), OUT.csv (the policy's cells) and OUT_random.csv")
     p.add_argument("--title", default="")
@@ -251,7 +254,8 @@ def evaluate_main(argv=None) -> int:
 
     try:
         results = evaluate(args.policy, args.map, args.n_sv, tasks, args.episodes, args.workers, args.mpc,
-                           progress, env_config=args.env_config, random_row=not args.no_random_row)
+                           progress, env_config=args.env_config, random_row=not args.no_random_row,
+                           seed_set=args.seed_set)
     except (CheckpointError, EvaluationError, ConfigError) as exc:
         return fail(prog, exc)
     finally:

@@ -1,8 +1,10 @@
 """The paper's evaluation protocol (§IV-B): every task x N_sv cell, fixed scenario seeds.
 
 Every method is evaluated on exactly the same scenarios: the scenario seed of episode k
-in cell (task j, N_sv i) is ``EVAL_SEED_BASE + 10_000*j + 1_000*i + k``, far away from
-the seeds training draws (those come from the training RNG, uniformly in [0, 2^31)).
+in cell (task j, N_sv i) is ``base + 10_000*j + 1_000*i + k``, far away from the seeds
+training draws (those come from the training RNG, uniformly in [0, 2^31)). There are two
+disjoint seed sets (``SEED_SETS``): ``validation``, for every choice (config, checkpoint,
+variant), and ``test``, only ever reported.
 
 Any policy can be put through it (``evaluate(policy, ...)``): a policy file (export or training
 checkpoint; None = the shipped policy), or an object with ``predict(obs)`` (Stable-Baselines3
@@ -40,7 +42,8 @@ from bimacppo_planner.policy import CheckpointError
 
 from .comfort import Comfort
 
-EVAL_SEED_BASE = 1_000_000
+EVAL_SEED_BASE = 1_000_000          # the test set
+SEED_SETS = {"test": EVAL_SEED_BASE, "validation": 2_000_000}
 OUTCOMES = ("success", "collision", "timeout")
 POLICY = "policy"          # CellResult.policy of the evaluated policy's cells
 RANDOM = "random"          # ... and of the random baseline's
@@ -50,10 +53,12 @@ class EvaluationError(Exception):
     """The evaluation could not run; the message is one line naming the cell and the cause."""
 
 
-def eval_seed(task: int, n_sv: int, k: int) -> int:
+def eval_seed(task: int, n_sv: int, k: int, seed_set: str = "test") -> int:
     if not (0 <= k < 1_000):
         raise ValueError(f"episode index {k} out of range: at most 1000 evaluation episodes per cell")
-    return EVAL_SEED_BASE + 10_000 * task + 1_000 * n_sv + k
+    if seed_set not in SEED_SETS:
+        raise ValueError(f"unknown seed set {seed_set!r}; expected one of {sorted(SEED_SETS)}")
+    return SEED_SETS[seed_set] + 10_000 * task + 1_000 * n_sv + k
 
 
 @dataclass
@@ -64,6 +69,8 @@ class CellResult:
     returns: list
     policy: str = POLICY    # POLICY or RANDOM
     comfort: Comfort | None = None   # ride comfort of the commands applied in the cell's episodes
+    threat_entries: int = 0  # episodes in which the EV crossed its stop line into a threatened junction
+    seed_set: str = "test"
 
     @property
     def n(self) -> int:
@@ -152,7 +159,7 @@ def _materialise(spec: tuple, env_config) -> tuple[str, Any]:
 
 
 def _run_cell(job: tuple) -> tuple:
-    spec, env_config, map_id, task, n_sv, episodes, mpc_solver = job
+    spec, env_config, map_id, task, n_sv, episodes, mpc_solver, seed_set = job
     from .env import IntersectionEnv
 
     label, policy = _materialise(spec, env_config)
@@ -162,10 +169,11 @@ def _run_cell(job: tuple) -> tuple:
     nvec = tuple(int(n) for n in env.cfg.nvec)
     counts: Counter = Counter()
     returns = []
+    threat = 0
     comfort = Comfort(delta_max=float(env.world.cfg.vehicle.delta_max), dt=float(env.world.dt))
     try:
         for k in range(episodes):
-            seed = eval_seed(task, n_sv, k)
+            seed = eval_seed(task, n_sv, k, seed_set)
             obs, _ = env.reset(options={"n_sv": n_sv, "task": task, "scenario_seed": seed})
             if callable(begin):
                 begin(seed)
@@ -177,10 +185,11 @@ def _run_cell(job: tuple) -> tuple:
                 done = term or trunc
             comfort.add_episode(np.concatenate(commands))
             counts[info["outcome"]] += 1
+            threat += int(bool(info.get("threat_entry")))
             returns.append(float(info["episode_return"]))
     finally:
         env.close()
-    return label, task, n_sv, counts, returns, comfort
+    return label, task, n_sv, counts, returns, comfort, threat, seed_set
 
 
 def _job_error(job: tuple, exc: BaseException) -> tuple:
@@ -302,7 +311,8 @@ _RANDOM_CACHE: dict[str, CellResult] = {}
 def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable[int] = (0, 1, 2, 3),
              tasks: Iterable[int] = (0, 1, 2), episodes: int = 100, workers: int = 2,
              mpc_solver: str = "fast", progress: Callable | None = None, *,
-             env_config: Any = None, random_row: bool = True, random_seed: int = 0) -> list[CellResult]:
+             env_config: Any = None, random_row: bool = True, random_seed: int = 0,
+             seed_set: str = "test") -> list[CellResult]:
     """Run the protocol; see the module docstring.
 
     ``env_config`` (EnvConfig, YAML path or dict) replaces the policy's own (a policy file's
@@ -313,6 +323,8 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
     random ones, each sorted by (task, N_sv).
     """
     n_svs, tasks = [int(n) for n in n_svs], [int(t) for t in tasks]
+    if seed_set not in SEED_SETS:
+        raise ValueError(f"unknown seed set {seed_set!r}; expected one of {sorted(SEED_SETS)}")
     if not 1 <= int(episodes) <= 1000:
         raise ValueError(f"episodes must be in 1..1000 per cell, got {episodes}")
     if int(workers) < 1:
@@ -320,21 +332,21 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
     check_cells(map_id, n_svs, tasks)
     spec, _, cfg = resolve_policy(policy, env_config)
     cells = [(t, n) for t in tasks for n in n_svs]
-    jobs = [(spec, cfg, map_id, t, n, int(episodes), mpc_solver) for t, n in cells]
+    jobs = [(spec, cfg, map_id, t, n, int(episodes), mpc_solver, seed_set) for t, n in cells]
     results: list[CellResult] = []
     if random_row:
         for t, n in cells:
-            key = json.dumps([map_id, cfg.to_dict(), t, n, int(episodes), mpc_solver, int(random_seed)])
+            key = json.dumps([map_id, cfg.to_dict(), t, n, int(episodes), mpc_solver, int(random_seed), seed_set])
             if key in _RANDOM_CACHE:
                 results.append(_RANDOM_CACHE[key])
             else:
-                jobs.append(((RANDOM, int(random_seed)), cfg, map_id, t, n, int(episodes), mpc_solver))
+                jobs.append(((RANDOM, int(random_seed)), cfg, map_id, t, n, int(episodes), mpc_solver, seed_set))
 
     def collect(r: tuple) -> None:
-        cell = CellResult(r[1], r[2], r[3], r[4], r[0], r[5])
+        cell = CellResult(r[1], r[2], r[3], r[4], r[0], r[5], r[6], r[7])
         if cell.policy == RANDOM:
             _RANDOM_CACHE[json.dumps([map_id, cfg.to_dict(), cell.task, cell.n_sv, int(episodes), mpc_solver,
-                                      int(random_seed)])] = cell
+                                      int(random_seed), seed_set])] = cell
         results.append(cell)
         if progress:
             progress(cell)
@@ -383,7 +395,8 @@ def to_markdown(results: list[CellResult], title: str = "") -> str:
     by = {(c.task, c.n_sv): c for c in mine}
     head = "| task | " + " | ".join(f"N_sv={n} S / C / TO (%)" for n in n_svs) + " |"
     sep = "|---|" + "---|" * len(n_svs)
-    lines = ([f"**{title}**", ""] if title else []) + [head, sep]
+    sets = sorted({c.seed_set for c in results})
+    lines = ([f"**{title}**", ""] if title else []) + [f"scenario seeds: {' + '.join(sets)} set", "", head, sep]
     for t in sorted({c.task for c in results}):
         if any(k[0] == t for k in by) or not rand:
             lines.append(f"| {TASKS[t]} | " + " | ".join(_row(by, t, n_svs)) + " |")
@@ -403,6 +416,16 @@ def to_markdown(results: list[CellResult], title: str = "") -> str:
                 row.append("–" if q is None or not q.ticks else
                            f"{q.full_lock_pct:.1f} / {q.reversal_pct:.1f} / {q.rms_jerk:.1f}")
             lines.append(f"| {TASKS[t]} | " + " | ".join(row) + " |")
+    if any(c.n_sv > 0 for c in mine):
+        lines += ["", "Entered the junction while the scripted yield rule's threat test held (% of the "
+                      "policy's episodes; measured on the true SV states)", "",
+                  "| task | " + " | ".join(f"N_sv={n}" for n in n_svs) + " |", sep]
+        for t in sorted({c.task for c in mine}):
+            row = []
+            for n in n_svs:
+                c = by.get((t, n))
+                row.append("–" if c is None else f"{100.0 * c.threat_entries / max(c.n, 1):.0f}")
+            lines.append(f"| {TASKS[t]} | " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -410,13 +433,14 @@ def to_csv(results: list[CellResult]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["task", "n_sv", "episodes", "success_pct", "collision_pct", "timeout_pct", "mean_return",
-                "full_lock_pct", "lock_reversal_pct", "rms_jerk"])
+                "full_lock_pct", "lock_reversal_pct", "rms_jerk", "threat_entry_pct", "seed_set"])
     for c in results:
         q = c.comfort
         ride = ["nan"] * 3 if q is None or not q.ticks else \
             [f"{q.full_lock_pct:.2f}", f"{q.reversal_pct:.2f}", f"{q.rms_jerk:.3f}"]
         w.writerow([TASKS[c.task], c.n_sv, c.n, f"{c.pct('success'):.1f}", f"{c.pct('collision'):.1f}",
-                    f"{c.pct('timeout'):.1f}", f"{np.mean(c.returns) if c.returns else float('nan'):.3f}", *ride])
+                    f"{c.pct('timeout'):.1f}", f"{np.mean(c.returns) if c.returns else float('nan'):.3f}", *ride,
+                    f"{100.0 * c.threat_entries / max(c.n, 1):.1f}", c.seed_set])
     return buf.getvalue()
 
 
