@@ -10,6 +10,7 @@ import array
 import json
 import math
 import os
+import pathlib
 import signal
 import subprocess
 import sys
@@ -75,6 +76,7 @@ class Watcher:
         self.commands = []             # (wall monotonic, stamp, a, delta, n_points)
         self.answered = set()          # command stamps that equal a state stamp seen
         self.states = set()
+        self.speeds = []               # (wall monotonic, stamp, v) of every EV state from the world
         self.last = {}                 # topic -> last message from a node
         self.on_result = None          # called on every /episode/result (e.g. to reset the world)
         for topic, typ in OUTPUTS.items():
@@ -94,6 +96,7 @@ class Watcher:
             self.on_result()
         if topic == I.TOPIC_EGO_ODOM:
             self.states.add(I.stamp_to_ns(msg.header.stamp))
+            self.speeds.append((time.monotonic(), I.stamp_to_ns(msg.header.stamp), msg.twist.twist.linear.x))
         elif topic == I.TOPIC_COMMAND and msg.points:
             st = msg.header.stamp.sec * I.NS_PER_S + msg.header.stamp.nanosec
             p0 = msg.points[0]
@@ -117,10 +120,11 @@ class Watcher:
                 rclpy.spin_once(self.node, timeout_sec=0.02)
         return bool(until and until())
 
-    def progress(self, ticks: int = 3, timeout: float = 20.0) -> bool:
-        """The loop answers ``ticks`` more world states (new command stamps) within timeout."""
-        n0 = len(self.answered)
-        return self.spin(timeout, lambda: len(self.answered) >= n0 + ticks)
+    def progress(self, ticks: int = 3, timeout: float = 20.0, after: int = -1) -> bool:
+        """The loop answers ``ticks`` more world states (new command stamps, stamped after
+        ``after``) within timeout."""
+        n0 = sum(1 for st in self.answered if st > after)
+        return self.spin(timeout, lambda: sum(1 for st in self.answered if st > after) >= n0 + ticks)
 
 
 def start(*args, log=None, env=None):
@@ -138,6 +142,11 @@ def stop(procs, sig=signal.SIGINT, timeout=15.0) -> None:
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait()
+
+
+def log_lines(path, needle: str) -> int:
+    """Lines of a process log that contain ``needle``."""
+    return sum(1 for line in pathlib.Path(path).read_text().splitlines() if needle in line)
 
 
 class Ledger:

@@ -10,7 +10,8 @@ import pytest
 pytest.importorskip("rclpy")
 
 from bimacppo_sim.ros import interfaces as I  # noqa: E402
-from bimacppo_sim.ros.tick_follower import GOAL_HISTORY, STALE_RESTART, TickFollower  # noqa: E402
+from bimacppo_sim.ros.tick_follower import (GOAL_HISTORY, RESYNC_MIN_S, RESYNC_REPEATS,  # noqa: E402
+                                            STALE_RESTART, TickFollower)
 
 S = I.NS_PER_S
 TICK = S // 10
@@ -36,6 +37,8 @@ class Follower(TickFollower):
         self.log = _Log()
         self.cleared = 0
         self._init_tick_follower(cache_size=16, max_jump_ns=30 * S)
+        self.now = 0.0                    # the wall clock of the resync rule, moved by the test
+        self._wall = lambda: self.now
 
     def get_logger(self):
         return self.log
@@ -217,3 +220,98 @@ def test_a_result_at_its_goals_stamp_is_refused():
     with pytest.raises(I.MessageError, match="first tick"):
         f._check_result(TICK)
     f._check_result(2 * TICK)             # a genuine result, one step later, passes
+
+
+# ----------------------------------------------------------------------------- resync
+def _resend(f, stamp, times, period_s=0.5):
+    """A lockstep source re-sending the tick it waits for; returns the receptions refused."""
+    refused = 0
+    for _ in range(times):
+        f.now += period_s
+        try:
+            f.state(stamp)
+        except I.MessageError:
+            refused += 1
+        f._classify(stamp)
+    return refused
+
+
+def _resyncs(f):
+    return [m for lvl, m in f.log.lines if lvl == "warning" and "following the source" in m]
+
+
+# (case, how the node comes to refuse the tick the source then re-sends)
+def _bogus_result_one_tick_ahead(f):
+    f._check_result(51 * TICK)
+    f.gate.on_result(51 * TICK)          # a well-formed result stamped at the next tick
+    f.state(51 * TICK)
+    assert f._classify(51 * TICK) == "stale"
+    return 51 * TICK
+
+
+def _bogus_result_at_the_newest_tick(f):
+    f.gate.on_result(50 * TICK)
+    f.state(51 * TICK)
+    assert f._classify(51 * TICK) == "wait"   # waits for a goal the source will never send
+    return 51 * TICK
+
+
+def _source_far_ahead(f):
+    with pytest.raises(I.MessageError, match="jump"):
+        f.state(50 * TICK + 40 * S)      # the source's clock went on while the node was elsewhere
+    return 50 * TICK + 40 * S
+
+
+@pytest.mark.parametrize("refuse", [_bogus_result_one_tick_ahead, _bogus_result_at_the_newest_tick,
+                                    _source_far_ahead])
+def test_a_refused_tick_the_source_keeps_re_sending_resynchronises_the_node(refuse):
+    f = Follower()
+    _ran_first_episode(f, ticks=50)
+    stamp = refuse(f)
+    assert _resend(f, stamp, RESYNC_REPEATS - 1) >= 0 and f.cleared == 0 and not _resyncs(f)
+    _resend(f, stamp, 1)                 # the RESYNC_REPEATS-th re-send: follow the source
+    assert f.cleared == 1 and len(_resyncs(f)) == 1, f.log.lines
+    assert f.gate.goal_stamp == TICK and f._classify(stamp) == "active" and f.gate.new_episode()
+    assert f.now <= 5.0
+    f.answer(stamp)
+    _resend(f, stamp, 3 * RESYNC_REPEATS)  # re-sends of the tick now answered: nothing more
+    f.answer(stamp + TICK)
+    assert f.cleared == 1 and len(_resyncs(f)) == 1
+
+
+def test_re_sends_faster_than_the_resync_time_wait_for_it():
+    f = Follower()
+    _ran_first_episode(f, ticks=50)
+    stamp = _source_far_ahead(f)
+    period = RESYNC_MIN_S / (3 * RESYNC_REPEATS)
+    _resend(f, stamp, 3 * RESYNC_REPEATS - 2, period_s=period)
+    assert f.cleared == 0                # many re-sends, but within RESYNC_MIN_S
+    _resend(f, stamp, 2, period_s=period)
+    assert f.cleared == 1
+
+
+@pytest.mark.parametrize("between", ["answer", "other stamp"])
+def test_refusals_while_the_node_answers_or_of_other_stamps_never_resync(between):
+    """A late sample refused again and again while newer ticks are answered (the loop moves),
+    or refusals of ever new stamps (a realtime source: its far-jump rule is StampFilter's)."""
+    f = Follower()
+    _ran_first_episode(f, ticks=50)
+    # other stamps: fewer than StampFilter's resync_after growing jumps, which it follows itself
+    n = 4 * RESYNC_REPEATS if between == "answer" else f.order.resync_after - 1
+    for k in range(51, 51 + n):
+        f.now += 1.0
+        stamp = 5 * TICK if between == "answer" else k * TICK + 40 * S
+        with pytest.raises(I.MessageError):
+            f.state(stamp)
+        if between == "answer":
+            f.answer(k * TICK)
+    assert f.cleared == 0 and not _resyncs(f)
+
+
+def test_a_node_without_a_goal_never_resyncs_on_re_sends():
+    """No goal yet ("wait" before any episode): nothing to follow; the goal's re-send starts it."""
+    f = Follower()
+    _resend(f, TICK, 4 * RESYNC_REPEATS, period_s=1.0)
+    assert f.cleared == 0 and f._refused is None
+    f.goal(TICK)
+    assert f._classify(TICK) == "active"

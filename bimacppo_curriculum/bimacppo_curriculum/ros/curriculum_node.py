@@ -13,7 +13,7 @@ are ``seed_base + episode index``: a run is reproducible from its parameters.
 from __future__ import annotations
 
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
@@ -27,6 +27,8 @@ from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import guarded, param_range, run_single
 
 TASKS = ("left", "straight", "right")  # architecture.md: task index j -> name
+RECENT_TICKS = 256
+"""State stamps remembered to tell a new tick from a re-send of one already seen."""
 
 
 def _param(name: str, value) -> ParameterMsg:
@@ -76,30 +78,42 @@ class CurriculumNode(Node):
         self.stall_timeout = float(param_range(g("stall_timeout_s"), "stall_timeout_s", "curriculum",
                                                lo=0.0, hi=3600.0, lo_open=True))
         self._last_progress = time.monotonic()
-        # /clock = the world is alive (it publishes it every tick and every re-send)
-        self.create_subscription(I.ClockMsg, I.TOPIC_CLOCK, self._on_clock, I.CLOCK_QOS)
+        # progress = a state stamp not seen before: a lockstep world publishes the next tick only
+        # once the current one was answered, and re-sends (with /clock) the tick nobody answers,
+        # so neither /clock nor a repeated state is progress
+        self._ticks: OrderedDict = OrderedDict()
+        self.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM,
+                                 guarded(self, I.TOPIC_EGO_ODOM, self._on_state, self.dropped), I.STATE_QOS)
         retry = float(param_range(g("retry_period_s"), "retry_period_s", "curriculum", lo=0.0, hi=60.0,
                                   lo_open=True))
         self.create_timer(retry, self._kick,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # ------------------------------------------------------------------ cycle
-    def _on_clock(self, _msg) -> None:
+    def _on_state(self, msg) -> None:
+        stamp = I.stamp_to_ns(msg.header.stamp)
+        if stamp in self._ticks:
+            return   # a re-send of a tick seen: the loop is not moving
+        self._ticks[stamp] = None
+        while len(self._ticks) > RECENT_TICKS:
+            self._ticks.popitem(last=False)
         self._last_progress = time.monotonic()
 
     def _kick(self) -> None:
         """Start the first episode once the world's services exist (and retry failures).
 
         Stall recovery: a world that was killed and restarted has forgotten the episode
-        (and a request sent while it was gone never gets an answer). When the world has
-        been silent (no /clock) for ``stall_timeout_s`` while an episode or a request is
-        outstanding, the request is dropped and the next episode requested again.
+        (and a request sent while it was gone never gets an answer), and a loop whose
+        world keeps re-sending a tick that nobody answers never ends its episode. When no
+        new tick (a state stamp not seen before) came for ``stall_timeout_s`` while an
+        episode or a request is outstanding, the request is dropped and the next episode
+        requested again.
         """
         if self.done:
             return
         if (self.current is not None or self._busy) and \
                 time.monotonic() - self._last_progress > self.stall_timeout:
-            self.get_logger().warning(f"world silent for {self.stall_timeout:g} s: requesting the episode again")
+            self.get_logger().warning(f"no new tick for {self.stall_timeout:g} s: requesting the episode again")
             self.current, self._busy = None, False
         if self.current is None and not self._busy:
             self.start_next()

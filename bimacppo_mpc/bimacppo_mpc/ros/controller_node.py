@@ -134,7 +134,7 @@ class ControllerNode(TickFollower, Node):
 
     def _process(self) -> None:
         for stamp in list(self.pending):
-            kind = self.gate.classify(stamp)
+            kind = self._classify(stamp)
             if kind == "stale":
                 del self.pending[stamp]
                 continue

@@ -182,6 +182,9 @@ class PlannerNode(TickFollower, Node):
         except (KeyError, ValueError) as exc:
             self.get_logger().warning(f"episode return not computed: {exc}")
             return
+        if not np.isfinite(ret):   # the input facts are finite (status_to_result); the sum must be too
+            self.get_logger().warning(f"episode return {ret} is not finite: not published")
+            return
         self.returns.append(ret)
         out = I.DiagnosticStatus(level=msg.level, name=msg.name, message=msg.message,
                                  hardware_id=msg.hardware_id, values=list(msg.values))
@@ -211,7 +214,7 @@ class PlannerNode(TickFollower, Node):
                 self.pub_ref.publish(self.answers[stamp])  # a re-sent tick: same answer
                 del self.states[stamp], self.objects[stamp]
                 continue
-            kind = self.gate.classify(stamp)
+            kind = self._classify(stamp)
             if kind == "wait":
                 continue
             ego, svs = self.states.pop(stamp), self.objects.pop(stamp)

@@ -426,6 +426,13 @@ def status_to_result(msg: DiagnosticStatus) -> EpisodeResult:
         raise MessageError(f"episode result: bad number ({exc})") from None
     if ret is not None and not math.isfinite(ret):
         raise MessageError(f"episode result: return is not finite ({kv['return']})")
+    for k, v in kv.items():   # a fact (speed, dist_to_goal, ...) no return can be computed from
+        try:
+            bad = not math.isfinite(float(v))
+        except ValueError:
+            continue   # not a number (task, outcome, an SV id)
+        if bad:
+            raise MessageError(f"episode result: {k} is not finite ({v})")
     if stamp < 0 or steps < 0 or n_sv < 0:
         raise MessageError(f"episode result: negative stamp_ns/steps/n_sv ({stamp}, {steps}, {n_sv})")
     return EpisodeResult(kv["outcome"], ret, n_sv, kv["task"], seed, steps, stamp)

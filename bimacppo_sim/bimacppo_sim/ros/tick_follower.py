@@ -12,6 +12,7 @@ mixed into, so it is importable (and testable) without a ROS context.
 """
 from __future__ import annotations
 
+import time
 from collections import OrderedDict, deque
 
 import numpy as np
@@ -27,6 +28,19 @@ the source restarted. A late or replayed sample is one message; a restarted sour
 nothing else. This catches the restart the goal rule cannot see: a world restarted within
 its first episode re-sends its first goal with the same stamp."""
 
+RESYNC_REPEATS = 3
+"""Receptions of a state this node refused (stale, too far ahead, or after its episode's
+result), counted after the refusal, that make the node follow the source to that tick.
+A lockstep source re-sends the tick it waits for and nothing else, so a refused tick that
+keeps coming means the node's view (a result, a newest answered stamp) is wrong and the
+source's is right; a single late or injected sample is never re-sent."""
+
+RESYNC_MIN_S = 1.0
+"""Wall seconds between the refusal and the resync, at least: a source's re-sends must span
+this long (the world re-sends every ``resend_period_s``, 0.5 s by default, so a resync comes
+1.5 s after the refusal; a downstream node refuses a tick only once its upstream answers it,
+so planner then controller resync within 3 s)."""
+
 
 class TickFollower:
     """Mixin: episode gate, stamp order filter, answer cache and goal handling."""
@@ -40,6 +54,8 @@ class TickFollower:
         self._newest_state = None                   # newest state stamp (bounds goal/result stamps)
         self._goals: deque = deque(maxlen=GOAL_HISTORY)   # recent (stamp, goal)
         self._stale_states = 0                      # stale states in a row (STALE_RESTART)
+        self._refused = None                        # [stamp, reason, wall time, receptions since]
+        self._wall = time.monotonic                 # the clock of RESYNC_MIN_S
 
     def _clear_tick_caches(self) -> None:
         """Drop what the node caches per tick (states, pending inputs); called on a restart."""
@@ -55,7 +71,9 @@ class TickFollower:
                                  f"ahead of the newest state ({self._newest_state} ns)")
 
     def _answered(self, stamp: int, msg, state) -> None:
-        """Cache the answer sent for a tick, with the state it answered."""
+        """Cache the answer sent for a tick, with the state it answered (the node is not
+        stalled: a refusal before it no longer counts towards ``RESYNC_REPEATS``)."""
+        self._refused = None
         self.answers[stamp] = msg
         self._answered_states[stamp] = np.array(state, dtype=float)
         self._bounded(self.answers)
@@ -69,11 +87,41 @@ class TickFollower:
         if self.gate.goal_stamp is not None and stamp == self.gate.goal_stamp:
             raise I.MessageError(f"result stamp {stamp} ns is its episode's first tick (its goal's stamp)")
 
+    def _refuse(self, stamp: int, reason: str) -> None:
+        """Note a tick this node will not answer (``RESYNC_REPEATS``); the first refusal of a
+        stamp starts the count, later ones of the same stamp keep it."""
+        if self._refused is None or self._refused[0] != stamp:
+            self._refused = [stamp, reason, self._wall(), 0]
+
+    def _insisted(self, stamp: int) -> bool:
+        """A state with the stamp last refused arrived again: True once the source has re-sent
+        it ``RESYNC_REPEATS`` times over at least ``RESYNC_MIN_S``."""
+        r = self._refused
+        if r is None or r[0] != stamp or stamp in self.answers:
+            return False
+        r[3] += 1
+        return r[3] >= RESYNC_REPEATS and self._wall() - r[2] >= RESYNC_MIN_S
+
+    def _classify(self, stamp: int) -> str:
+        """``EpisodeGate.classify``, noting the ticks refused because their episode is over
+        (``"stale"``, or ``"wait"`` after a result: no goal of a new episode yet)."""
+        kind = self.gate.classify(stamp)
+        if kind == "stale" or (kind == "wait" and self.gate.ended):
+            self._refuse(stamp, f"its episode ended at {self.gate.result_stamp} ns" if self.gate.ended
+                         else f"older than its goal ({self.gate.goal_stamp} ns)")
+        return kind
+
     def _check_order(self, stamp: int, what: str, state=None) -> None:
         """Refuse a stale or far-future stamp; a re-sent tick (already answered, the same
         ``state``) passes. A state with an answered stamp but other values is no re-send:
         a restarted source reached a stamp still cached (it counts as stale).
-        ``STALE_RESTART`` stale states in a row restart the node at this state's time."""
+        ``STALE_RESTART`` stale states in a row restart the node at this state's time; a
+        refused state re-sent ``RESYNC_REPEATS`` times resynchronises the node to it."""
+        if what == "state" and self._insisted(stamp):
+            r = self._refused
+            self._restart_at(stamp, f"state {stamp} ns refused ({r[1]}) and re-sent {r[3]} times in "
+                                    f"{self._wall() - r[2]:.1f} s: following the source")
+            return
         if stamp in self.answers:
             if state is None or np.array_equal(self._answered_states.get(stamp), state):
                 return
@@ -84,8 +132,12 @@ class TickFollower:
         if what == "state":
             self._stale_states = self._stale_states + 1 if why == "stale" else 0
             if self._stale_states >= STALE_RESTART:
-                self._restart_at(stamp)
+                self._restart_at(stamp, f"{self._stale_states} states in a row older than the newest "
+                                        f"answered one ({stamp} < {self.order.newest} ns): source "
+                                        "restarted? starting over")
                 return
+            if why is not None:
+                self._refuse(stamp, f"{why}, newest answered {self.order.newest} ns")
         if why is not None:
             raise I.MessageError(f"{what} stamp {stamp} ns {detail} (newest answered {self.order.newest} ns)")
 
@@ -120,16 +172,19 @@ class TickFollower:
         self._newest_state = None
         self._goals.clear()
         self._stale_states = 0
+        self._refused = None
         self._clear_tick_caches()
 
-    def _restart_at(self, stamp: int) -> None:
-        """Restart on a run of stale states, keeping the current goal if it is not after them
-        (a world restarted within its first episode sent it again with the same stamp); an
-        older goal in the history belongs to the old run of the source."""
+    def _restart_at(self, stamp: int, why: str) -> None:
+        """Restart at a state the source insists on (a run of stale states, a refused tick
+        re-sent), keeping the current goal if it is not after it (a world restarted within
+        its first episode sent it again with the same stamp; a lockstep world re-sends the
+        goal of the episode it runs); an older goal in the history belongs to an old run of
+        the source. ``why`` is logged, once per restart."""
         g = self.gate
         keep = (g.goal_stamp, g.goal) if g.goal_stamp is not None and g.goal_stamp <= stamp else None
-        self.get_logger().warning(f"{self._stale_states} states in a row older than the newest answered one "
-                                  f"({stamp} < {self.order.newest} ns): source restarted? starting over")
+        kept = f" (goal of {keep[0]} ns kept)" if keep is not None else " (waiting for a goal)"
+        self.get_logger().warning(why + kept)
         self._restart()
         if keep is not None:
             self.gate.on_goal(*keep)

@@ -6,7 +6,9 @@ Two clocking modes (parameter ``mode``):
   /control/command whose header.stamp equals tick k's stamp, then steps. If that command
   does not come within ``resend_period_s`` (wall), tick k's messages are published again
   (same stamp; the planner and controller answer repeats from their caches), so a node
-  that joined late or a lost sample never deadlocks the loop.
+  that joined late or a lost sample never deadlocks the loop. After ``resend_warn_after``
+  re-sends of one tick without its command the world warns once for that tick (with the
+  count), and says after how many re-sends it was answered.
 * ``realtime``: a wall timer steps every dt / ``rate_factor`` with the latest command; a
   command older than ``command_timeout_s`` (sim time) or none at all means brake
   (a_min of the vehicle config) with the steering held (a warning says so). A command
@@ -61,6 +63,7 @@ class WorldNode(Node):
         d("rate_factor", 1.0)
         d("command_timeout_s", 0.3)
         d("resend_period_s", 0.5)
+        d("resend_warn_after", 10)
         d("goal_resend_period_s", 1.0)
         d("publish_markers", True)
         p = lambda n: self.get_parameter(n).value  # noqa: E731
@@ -73,6 +76,8 @@ class WorldNode(Node):
                                                         lo=0.0, hi=60.0, lo_open=True)) * I.NS_PER_S)
         self.resend_period = float(param_range(p("resend_period_s"), "resend_period_s", "world",
                                                lo=0.0, hi=60.0, lo_open=True))
+        self.resend_warn_after = int(param_range(p("resend_warn_after"), "resend_warn_after", "world",
+                                                 lo=1, hi=1_000_000))
         self.goal_resend_period = float(param_range(p("goal_resend_period_s"), "goal_resend_period_s", "world",
                                                     lo=0.0, hi=3600.0))
         self.markers_on = bool(p("publish_markers"))
@@ -107,6 +112,7 @@ class WorldNode(Node):
         self.trajectory = []           # (stamp_ns, ego) of the current episode
         self._last_cmd: Optional[tuple] = None   # (stamp_ns, u)
         self._last_pub = 0.0
+        self._resends = 0              # re-sends of the current tick
         self._goal_msg = None          # the current episode's /goal_pose (re-sent while active)
         self._last_goal_pub = 0.0
         self._delta_hold = 0.0
@@ -162,6 +168,7 @@ class WorldNode(Node):
         self.active = True
         self.trajectory = []
         self._last_cmd = None
+        self._resends = 0
         self._delta_hold = 0.0
         self._goal_msg = I.goal_to_pose(self.world.goal, self.stamp_ns())
         self.pub_goal.publish(self._goal_msg)
@@ -193,6 +200,9 @@ class WorldNode(Node):
         self._last_pub = time.monotonic()
 
     def _step(self, u) -> None:
+        if self._resends >= self.resend_warn_after:
+            self.get_logger().info(f"tick {self.stamp_ns()} ns answered after {self._resends} re-sends")
+        self._resends = 0
         res = self.world.step(np.asarray(u, dtype=float))
         self._delta_hold = float(u[1])
         self.tick += 1
@@ -232,6 +242,11 @@ class WorldNode(Node):
     def _resend(self) -> None:
         if self.active and time.monotonic() - self._last_pub >= self.resend_period:
             self._publish_state()
+            self._resends += 1
+            if self._resends == self.resend_warn_after:
+                self.get_logger().warning(
+                    f"tick {self.stamp_ns()} ns re-sent {self._resends} times without a command for it "
+                    "(no controller, or planner and controller refuse this tick: see their logs)")
 
     def _resend_goal(self) -> None:
         if self.active and self._goal_msg is not None and \
