@@ -11,7 +11,8 @@ import sys
 
 from conftest import REPO
 
-PACKAGES = ["bimacppo_common", "bimacppo_sim", "bimacppo_mpc", "bimacppo_curriculum", "bimacppo_planner"]
+PACKAGES = ["bimacppo_common", "bimacppo_sim", "bimacppo_mpc", "bimacppo_curriculum", "bimacppo_planner",
+            "bimacppo_viz"]
 # plain Python (no ROS package), never imported by the deployed packages
 LEARNING = "bimacppo_learning"
 TRAINING_ONLY = ("bimacppo_learning", "gymnasium", "tensorboard", "ray", "rliable")  # torch itself loads torch.optim

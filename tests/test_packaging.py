@@ -15,6 +15,7 @@ EXECUTABLES = {
     "bimacppo_mpc": ["controller_node"],
     "bimacppo_curriculum": ["curriculum_node"],
     "bimacppo_planner": ["planner_node", "bimacppo-graph"],
+    "bimacppo_viz": ["live_view"],
 }
 # the training stack is a plain Python package, not part of the deployed ROS workspace
 TRAINING_EXECUTABLES = ["bimacppo-train", "bimacppo-evaluate", "bimacppo-report", "bimacppo-experiments"]
@@ -50,6 +51,7 @@ def test_colcon_build_installs_every_package_and_executable(colcon_install):
     # package data (maps, configs) travels with the build
     site = next((colcon_install / "bimacppo_sim" / "lib").glob("python3*/site-packages"))
     assert (site / "bimacppo_sim" / "maps" / "dual_lane_4way.yaml").is_file()
+    assert (colcon_install / "bimacppo_viz" / "share" / "bimacppo_viz" / "layouts" / "bimacppo_live.json").is_file()
 
 
 def test_colcon_installed_cli_runs(colcon_install):

@@ -38,6 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--output", default="", help="MCAP path (default: bimacppo_<time>.mcap)")
     ap.add_argument("--no-record", action="store_true")
     ap.add_argument("--timeout", type=float, default=0.0, help="wall-clock limit in s (0 = none)")
+    ap.add_argument("--live-view", nargs="?", type=int, const=None, default=False, metavar="PORT",
+                    help="serve the graph to Foxglove on ws://127.0.0.1:PORT (default port 8765; "
+                         "bimacppo_viz, docs/live-view.md)")
     return ap
 
 
@@ -70,6 +73,10 @@ def run(args) -> int:
             P("scheduler", value=args.scheduler), P("seed", value=args.seed),
             P("episodes", value=args.episodes), P("seed_base", value=args.seed_base)])
         nodes += [world, planner, ctrl, cur]
+        if args.live_view is not False:   # the flag alone: the node's default port
+            from bimacppo_viz.ros.live_view import LiveViewNode
+            nodes.append(LiveViewNode(parameter_overrides=[] if args.live_view is None else
+                                      [P("port", value=args.live_view)]))
         for n in nodes:
             ex.add_node(n)
         if rec is not None:
@@ -87,7 +94,7 @@ def run(args) -> int:
         if not finished:
             print("stopped before all episodes finished", file=sys.stderr)
         return 0 if finished else 1
-    except (ValueError, FileNotFoundError, LookupError) as exc:
+    except (ValueError, FileNotFoundError, LookupError, *runtime.SetupException) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return runtime.EXIT_CONFIG_ERROR
     finally:

@@ -1,0 +1,295 @@
+"""The live view's scene: graph states (numpy, sim-time stamps in ns) -> Foxglove messages.
+
+Inputs are what ``bimacppo_sim.ros.interfaces`` converters return (``[x, y, v, psi]`` in the
+``map`` frame, SV ids + ``(n, 4)`` states, ``[x, y, psi]`` goal, ``[a, delta]`` command with
+its horizon), so every message convention is decided there and nowhere here. This module
+imports no rclpy: it is unit-testable anywhere ``foxglove-sdk`` is installed.
+
+Channels (the names the shipped layout opens):
+
+* 3D scene, ``foxglove.SceneUpdate`` (protobuf): ``/viz/vehicles`` (EV + SVs, every update
+  replaces the whole set so vanished SVs disappear), ``/viz/route``, ``/viz/reference``
+  (x_IMR), ``/viz/goal``;
+* ``/viz/tf``, ``foxglove.FrameTransforms``: ``map -> base_link`` (EV) and ``map -> x_imr``,
+  so the 3D panel can follow the EV;
+* plots, JSON: ``/viz/ego`` and ``/viz/reference_state`` (``t, x, y, v, psi``),
+  ``/viz/command`` (``t, a, delta`` and the MPC horizon), ``/viz/episode`` (the result's
+  key-values).
+
+Entities and transforms carry the sim stamp of the state they show, so a transform lookup at
+an entity's time finds the transform of the same tick. Display sizes and colours come from a
+style object with the attributes of ``interfaces.MarkerStyle`` (body from the vehicle config),
+which the world's RViz markers use too.
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterable, Mapping, Optional, Sequence
+
+import numpy as np
+from foxglove import messages as fm
+
+FRAME_MAP = "map"
+FRAME_EGO = "base_link"
+FRAME_REFERENCE = "x_imr"
+
+CH_VEHICLES = "/viz/vehicles"
+CH_ROUTE = "/viz/route"
+CH_REFERENCE = "/viz/reference"
+CH_GOAL = "/viz/goal"
+CH_TF = "/viz/tf"
+CH_EGO = "/viz/ego"
+CH_REFERENCE_STATE = "/viz/reference_state"
+CH_COMMAND = "/viz/command"
+CH_EPISODE = "/viz/episode"
+SCENE_CHANNELS = (CH_VEHICLES, CH_ROUTE, CH_REFERENCE, CH_GOAL)
+JSON_CHANNELS = (CH_EGO, CH_REFERENCE_STATE, CH_COMMAND, CH_EPISODE)
+CHANNELS = (*SCENE_CHANNELS, CH_TF, *JSON_CHANNELS)
+
+ENTITY_EGO = "ego"
+ENTITY_SV_PREFIX = "sv/"
+ENTITY_ROUTE = "route"
+ENTITY_REFERENCE = "x_imr"
+ENTITY_GOAL = "goal"
+
+ARROW_LENGTH_M = 2.0      # x_IMR and goal arrows: heading only, drawn at one readable size
+LABEL_SIZE_M = 1.2        # text labels (SV ids, EV speed) in scene metres
+
+_STATE_SCHEMA = {
+    "type": "object",
+    "properties": {k: {"type": "number"} for k in ("t", "x", "y", "v", "psi")},
+}
+JSON_SCHEMAS = {
+    CH_EGO: {**_STATE_SCHEMA, "title": "bimacppo.EgoState"},
+    CH_REFERENCE_STATE: {**_STATE_SCHEMA, "title": "bimacppo.Reference"},
+    CH_COMMAND: {
+        "title": "bimacppo.Command",
+        "type": "object",
+        "properties": {
+            "t": {"type": "number"}, "a": {"type": "number"}, "delta": {"type": "number"},
+            "horizon_a": {"type": "array", "items": {"type": "number"}},
+            "horizon_delta": {"type": "array", "items": {"type": "number"}},
+        },
+    },
+    CH_EPISODE: {
+        "title": "bimacppo.EpisodeResult",
+        "type": "object",
+        "properties": {"t": {"type": "number"}, "outcome": {"type": "string"},
+                       "values": {"type": "object", "additionalProperties": {"type": "string"}}},
+    },
+}
+
+
+# ----------------------------------------------------------------------------- primitives
+def timestamp(stamp_ns: int) -> fm.Timestamp:
+    if stamp_ns < 0:
+        raise ValueError(f"stamp must be >= 0 ns, got {stamp_ns}")
+    return fm.Timestamp(int(stamp_ns) // 1_000_000_000, int(stamp_ns) % 1_000_000_000)
+
+
+def _seconds(stamp_ns: int) -> float:
+    return int(stamp_ns) / 1e9
+
+
+def yaw_quaternion(psi: float) -> fm.Quaternion:
+    """Yaw-only rotation about +z (the convention of docs/interfaces.md)."""
+    return fm.Quaternion(x=0.0, y=0.0, z=math.sin(0.5 * psi), w=math.cos(0.5 * psi))
+
+
+def _color(rgba) -> fm.Color:
+    r, g, b, a = (float(c) for c in rgba)
+    return fm.Color(r=r, g=g, b=b, a=a)
+
+
+def _pose(x: float, y: float, z: float, psi: float) -> fm.Pose:
+    return fm.Pose(position=fm.Vector3(x=float(x), y=float(y), z=float(z)), orientation=yaw_quaternion(float(psi)))
+
+
+def _state(state, what: str) -> np.ndarray:
+    s = np.asarray(state, dtype=float).reshape(-1)
+    if s.shape != (4,) or not np.all(np.isfinite(s)):
+        raise ValueError(f"{what}: expected 4 finite values [x, y, v, psi], got {state!r}")
+    return s
+
+
+def _body(state, style, rgba) -> fm.CubePrimitive:
+    x, y, _, psi = state
+    return fm.CubePrimitive(pose=_pose(x, y, 0.5 * style.height, psi),
+                            size=fm.Vector3(x=float(style.length), y=float(style.width), z=float(style.height)),
+                            color=_color(rgba))
+
+
+def _label(x: float, y: float, z: float, text: str) -> fm.TextPrimitive:
+    return fm.TextPrimitive(pose=_pose(x, y, z, 0.0), billboard=True, font_size=LABEL_SIZE_M,
+                            scale_invariant=False, color=fm.Color(r=1.0, g=1.0, b=1.0, a=1.0), text=text)
+
+
+def _arrow(x: float, y: float, z: float, psi: float, rgba) -> fm.ArrowPrimitive:
+    return fm.ArrowPrimitive(pose=_pose(x, y, z, psi), shaft_length=0.7 * ARROW_LENGTH_M, shaft_diameter=0.3,
+                             head_length=0.3 * ARROW_LENGTH_M, head_diameter=0.7, color=_color(rgba))
+
+
+# ----------------------------------------------------------------------------- scene updates
+def vehicles_update(ego, sv_ids: Sequence[str], sv_states, stamp_ns: int, style) -> fm.SceneUpdate:
+    """EV and every SV as boxes; deletes all earlier entities of the channel first."""
+    ts = timestamp(stamp_ns)
+    ego = _state(ego, "ego")
+    arr = np.asarray(sv_states, dtype=float).reshape(-1, 4) if len(sv_ids) else np.zeros((0, 4))
+    if len(arr) != len(sv_ids):
+        raise ValueError(f"{len(sv_ids)} SV ids but {len(arr)} SV states")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("SV states: non-finite value")
+    entities = [fm.SceneEntity(timestamp=ts, frame_id=FRAME_MAP, id=ENTITY_EGO,
+                               cubes=[_body(ego, style, style.ego_rgba)],
+                               texts=[_label(ego[0], ego[1], style.height + 1.0, f"EV {ego[2]:.1f} m/s")])]
+    for sid, s in zip(sv_ids, arr):
+        entities.append(fm.SceneEntity(timestamp=ts, frame_id=FRAME_MAP, id=ENTITY_SV_PREFIX + str(sid),
+                                       cubes=[_body(s, style, style.sv_rgba)],
+                                       texts=[_label(s[0], s[1], style.height + 1.0, str(sid))]))
+    return fm.SceneUpdate(deletions=[fm.SceneEntityDeletion(timestamp=ts, type=fm.SceneEntityDeletionType.All)],
+                          entities=entities)
+
+
+def route_update(points, stamp_ns: int, style) -> fm.SceneUpdate:
+    """The EV's reference route (``(M, >= 2)`` array, x and y used) as one line strip."""
+    pts = np.asarray(points, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] < 2 or len(pts) < 2 or not np.all(np.isfinite(pts[:, :2])):
+        raise ValueError(f"route: expected >= 2 finite points (M, 2), got shape {pts.shape}")
+    line = fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=_pose(0.0, 0.0, 0.0, 0.0),
+                            thickness=float(style.line_width), scale_invariant=False,
+                            points=[fm.Point3(x=float(p[0]), y=float(p[1]), z=0.05) for p in pts],
+                            color=_color(style.route_rgba))
+    return fm.SceneUpdate(entities=[fm.SceneEntity(timestamp=timestamp(stamp_ns), frame_id=FRAME_MAP,
+                                                   id=ENTITY_ROUTE, lines=[line])])
+
+
+def reference_update(x_imr, stamp_ns: int, style) -> fm.SceneUpdate:
+    """x_IMR as an arrow along its heading, with its speed as a label."""
+    x, y, v, psi = _state(x_imr, "x_IMR")
+    return fm.SceneUpdate(entities=[fm.SceneEntity(
+        timestamp=timestamp(stamp_ns), frame_id=FRAME_MAP, id=ENTITY_REFERENCE,
+        arrows=[_arrow(x, y, 0.2, psi, style.reference_rgba)],
+        texts=[_label(x, y, 1.5, f"x_IMR {v:.1f} m/s")])])
+
+
+def goal_update(goal, stamp_ns: int, style) -> fm.SceneUpdate:
+    g = np.asarray(goal, dtype=float).reshape(-1)
+    if g.shape != (3,) or not np.all(np.isfinite(g)):
+        raise ValueError(f"goal: expected 3 finite values [x, y, psi], got {goal!r}")
+    return fm.SceneUpdate(entities=[fm.SceneEntity(
+        timestamp=timestamp(stamp_ns), frame_id=FRAME_MAP, id=ENTITY_GOAL,
+        arrows=[_arrow(g[0], g[1], 0.1, g[2], style.goal_rgba)],
+        spheres=[fm.SpherePrimitive(pose=_pose(g[0], g[1], 0.1, 0.0), size=fm.Vector3(x=1.0, y=1.0, z=0.2),
+                                    color=_color(style.goal_rgba))])])
+
+
+def transform(child: str, state, stamp_ns: int) -> fm.FrameTransform:
+    s = _state(state, child)
+    return fm.FrameTransform(timestamp=timestamp(stamp_ns), parent_frame_id=FRAME_MAP, child_frame_id=child,
+                             translation=fm.Vector3(x=float(s[0]), y=float(s[1]), z=0.0),
+                             rotation=yaw_quaternion(float(s[3])))
+
+
+# ----------------------------------------------------------------------------- JSON (plots)
+def state_json(state, stamp_ns: int) -> dict:
+    x, y, v, psi = (float(c) for c in _state(state, "state"))
+    return {"t": _seconds(stamp_ns), "x": x, "y": y, "v": v, "psi": psi}
+
+
+def command_json(u, horizon, stamp_ns: int) -> dict:
+    """``u = [a, delta]``; ``horizon`` the ``(K, 2)`` rows of all points (row 0 = u)."""
+    a, delta = (float(c) for c in np.asarray(u, dtype=float).reshape(2))
+    h = np.asarray(horizon, dtype=float).reshape(-1, 2)
+    if not (math.isfinite(a) and math.isfinite(delta) and np.all(np.isfinite(h))):
+        raise ValueError("command: non-finite value")
+    return {"t": _seconds(stamp_ns), "a": a, "delta": delta,
+            "horizon_a": [float(r[0]) for r in h], "horizon_delta": [float(r[1]) for r in h]}
+
+
+def episode_json(values: Mapping[str, str], stamp_ns: int) -> dict:
+    return {"t": _seconds(stamp_ns), "outcome": str(values.get("outcome", "")),
+            "values": {str(k): str(v) for k, v in values.items()}}
+
+
+# ----------------------------------------------------------------------------- the live scene
+class LiveScene:
+    """The live view's channels in one Foxglove context, and what to log on each.
+
+    ``on_*`` take converted inputs (see the module docstring) and log on the matching
+    channels. The EV and SV boxes are one update: ``on_state`` and ``on_objects`` each keep
+    their latest input, and the vehicles are drawn once per tick, when both carry the same
+    stamp (a source stamps both with the tick; DDS orders topics independently), so the EV of
+    one tick never shows beside the SVs of another. Until a first ``/objects`` arrives the EV
+    is drawn alone.
+    """
+
+    def __init__(self, context, style) -> None:
+        from foxglove import Channel
+        from foxglove.channels import FrameTransformsChannel, SceneUpdateChannel
+
+        self.style = style
+        self.scene = {name: SceneUpdateChannel(name, context=context) for name in SCENE_CHANNELS}
+        self.tf = FrameTransformsChannel(CH_TF, context=context)
+        self.json = {name: Channel(name, schema=JSON_SCHEMAS[name], context=context) for name in JSON_CHANNELS}
+        self._ego: Optional[tuple] = None        # (stamp, state)
+        self._objects: Optional[tuple] = None    # (stamp, ids, states)
+        self._drawn: Optional[tuple] = None      # (stamp, with SVs) of the vehicles last drawn
+        self.logged = {name: 0 for name in CHANNELS}
+
+    def _log(self, name: str, msg) -> None:
+        (self.scene.get(name) or self.json.get(name) or self.tf).log(msg)
+        self.logged[name] += 1
+
+    def _vehicles(self) -> None:
+        if self._ego is None:
+            return
+        stamp, ego = self._ego
+        if self._objects is None:
+            pair = ([], np.zeros((0, 4)))          # no SV source (yet): the EV alone
+        elif self._objects[0] == stamp:
+            pair = (self._objects[1], self._objects[2])
+        else:
+            return                                 # the SVs of another tick: wait for the match
+        drawn = (stamp, self._objects is not None)
+        if self._drawn == drawn:
+            return
+        self._log(CH_VEHICLES, vehicles_update(ego, pair[0], pair[1], stamp, self.style))
+        self._drawn = drawn
+
+    def on_state(self, state, stamp_ns: int) -> None:
+        self._ego = (int(stamp_ns), _state(state, "ego"))
+        self._log(CH_EGO, state_json(state, stamp_ns))
+        self._log(CH_TF, fm.FrameTransforms(transforms=[transform(FRAME_EGO, state, stamp_ns)]))
+        self._vehicles()
+
+    def on_objects(self, ids: Sequence[str], states, stamp_ns: int) -> None:
+        self._objects = (int(stamp_ns), list(ids), np.asarray(states, dtype=float).reshape(-1, 4))
+        self._vehicles()
+
+    def on_reference(self, x_imr, stamp_ns: int) -> None:
+        self._log(CH_REFERENCE, reference_update(x_imr, stamp_ns, self.style))
+        self._log(CH_REFERENCE_STATE, state_json(x_imr, stamp_ns))
+        self._log(CH_TF, fm.FrameTransforms(transforms=[transform(FRAME_REFERENCE, x_imr, stamp_ns)]))
+
+    def on_goal(self, goal, stamp_ns: int) -> None:
+        self._log(CH_GOAL, goal_update(goal, stamp_ns, self.style))
+
+    def on_route(self, points, stamp_ns: int) -> None:
+        self._log(CH_ROUTE, route_update(points, stamp_ns, self.style))
+
+    def on_command(self, u, horizon, stamp_ns: int) -> None:
+        self._log(CH_COMMAND, command_json(u, horizon, stamp_ns))
+
+    def on_result(self, values: Mapping[str, str], stamp_ns: int) -> None:
+        self._log(CH_EPISODE, episode_json(values, stamp_ns))
+
+
+def route_from_markers(markers: Iterable, ns: str = ENTITY_ROUTE) -> Optional[np.ndarray]:
+    """The route polyline of a marker list (the world's ``/objects/markers``: LINE_STRIP ``route``),
+    as an ``(M, 2)`` array, or None if it holds none. ``markers`` need ``ns``, ``type`` and
+    ``points`` (each with ``x``, ``y``) like ``visualization_msgs/Marker``."""
+    line_strip = 4   # visualization_msgs/Marker.LINE_STRIP
+    for m in markers:
+        if m.ns == ns and m.type == line_strip and len(m.points) >= 2:
+            return np.array([[p.x, p.y] for p in m.points], dtype=float)
+    return None
