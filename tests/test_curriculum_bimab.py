@@ -199,3 +199,27 @@ def test_non_finite_or_bad_inputs_raise():
     with pytest.raises(ValueError, match="integer"):
         s.update(0.0, 1, 1.0)
     assert s.n_updates == 0   # nothing was counted
+
+
+@pytest.mark.parametrize("name", ["bimab", "rd"])
+def test_budget_scaling_gives_every_run_min_syncs_and_a_moving_law(name):
+    from bimacppo_curriculum.bandit import budget_scaling
+    c = make_scheduler(name, seed=0).config
+    assert (c.min_syncs, c.step_budget) == (10, 5000)
+    assert budget_scaling(c, 1000) == (100, 5.0) and budget_scaling(c, 5000) == (500, 1.0)
+    assert budget_scaling(c, 50_000) == (c.sync_interval, 0.1)       # never sparser than N_BiMAB
+    assert budget_scaling(c, None) == (c.sync_interval, 1.0)
+    off = make_scheduler(name, seed=0, total_episodes=1000, config={"min_syncs": None, "step_budget": None})
+    assert off.sync_interval == c.sync_interval and off.alpha_scale == 1.0   # the paper's fixed values
+    s = make_scheduler(name, seed=0, total_episodes=1000)
+    rng = np.random.default_rng(0)
+    laws = []
+    for t in range(1, 1001):
+        i, j = s.sample()
+        s.update(i, j, float(10.0 * i - 5.0 + rng.normal()))   # harder clusters pay more: a law worth moving
+        if t % 100 == 99 or t == 100:
+            laws.append(s.probabilities()[0].copy())
+    assert s.n_syncs == 10
+    np.testing.assert_allclose(laws[0], 0.25)                     # before the first sync: uniform
+    assert np.abs(laws[1] - 0.25).max() > 0.05                    # the first sync (episode 100) moved it
+    assert np.argmax(s.probabilities()[0]) == 3

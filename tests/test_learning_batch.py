@@ -135,3 +135,34 @@ def test_worker_processes_give_the_in_process_trajectories_and_report_worker_err
         two.close()
     with pytest.raises(ValueError, match="workers"):
         BatchedVectorEnv(2, workers=3, config=EXT)
+
+
+def test_threat_entry_shaping_changes_returns_only_and_only_on_threatened_entries():
+    """The same scenarios and actions with and without the shaping term: the trajectories are the
+    same, and an episode's return is lower by exactly |threat_entry| iff it entered a threatened
+    junction. A timeout is a truncation in truncate mode and a termination in terminal mode."""
+    shaped = EnvConfig.from_dict({**EXT.to_dict(), "reward": {**EXT.to_dict()["reward"], "threat_entry": -7.0,
+                                                               "timeout_mode": "truncate"}})
+    plain = EnvConfig.from_dict({**EXT.to_dict(), "reward": {**EXT.to_dict()["reward"], "timeout_mode": "terminal"}})
+    go = np.array([[4, 4, 1]])          # farthest waypoint at 8 m/s: never yields
+    flags = []
+    for k in range(8):
+        ends = []
+        for cfg in (shaped, plain):
+            b = IntersectionBatch(1, config=cfg)
+            b.reset(0, seed=k, options={"n_sv": 3 * (k % 2), "task": k % 3})
+            while True:
+                _, _, te, tr, inf = b.step(go)
+                if te[0] or tr[0]:
+                    ends.append((inf[0], bool(te[0]), bool(tr[0]), b.worlds[0].ego.copy()))
+                    break
+        (i1, te1, tr1, ego1), (i2, te2, tr2, ego2) = ends
+        np.testing.assert_array_equal(ego1, ego2)
+        assert i1["outcome"] == i2["outcome"] and i1["threat_entry"] == i2["threat_entry"]
+        flags.append(i1["threat_entry"])
+        if i1["outcome"] == "timeout":
+            assert (te1, tr1, te2, tr2) == (False, True, True, False)
+        else:
+            assert te1 and te2 and not tr1 and not tr2
+            assert i1["episode_return"] - i2["episode_return"] == pytest.approx(-7.0 * i1["threat_entry"])
+    assert any(flags) and not all(flags), flags      # both kinds of episode occurred

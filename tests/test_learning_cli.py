@@ -91,6 +91,12 @@ def test_evaluation_seeds_are_fixed_and_distinct():
     assert len(seeds) == 1200 and min(seeds) >= EVAL_SEED_BASE
     with pytest.raises(ValueError):
         eval_seed(0, 0, 1000)
+    val = {eval_seed(t, n, k, "validation") for t in range(3) for n in range(4) for k in range(1000)}
+    test = {eval_seed(t, n, k, "test") for t in range(3) for n in range(4) for k in range(1000)}
+    assert len(val) == len(test) == 12_000 and not val & test         # choices never see a test scenario
+    assert seeds <= test
+    with pytest.raises(ValueError, match="unknown seed set 'train'"):
+        eval_seed(0, 0, 0, "train")
 
 
 def test_report_draws_figures_and_table_i(trained, tmp_path):

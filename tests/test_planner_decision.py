@@ -115,6 +115,9 @@ VARIANTS = {   # variant file -> what it changes relative to the packaged env.ya
     "bimacppo_learning/bimacppo_learning/config/env_extended.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}},
+    "bimacppo_learning/bimacppo_learning/config/env_yield.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
+         "action": {"decision_every": 3}, "reward": {"timeout_mode": "truncate", "threat_entry": -10.0}},
     "studies/config/env_extended_safe.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}, "reward": {"collision_base": -30.0}},
@@ -161,3 +164,21 @@ def test_ego_frame_observation_keeps_sides():
     np.testing.assert_allclose(o[8:10], [5.0, 10.0], atol=1e-6)
     with pytest.raises(ConfigError, match="sv_frame"):
         EnvConfig.from_dict({"observation": {"sv_frame": "polar"}})
+
+
+def test_timeout_pays_the_failure_terms_only_when_terminal():
+    from bimacppo_planner.decision import step_reward
+    term = EnvConfig.load().reward
+    trunc = EnvConfig.load(overrides={"reward.timeout_mode": "truncate"}).reward
+    assert term.timeout_terminal and not trunc.timeout_terminal
+    cut = step_reward(trunc, False, "timeout", 3, 2, 0.0, 4.0)
+    assert cut == pytest.approx(trunc.step)                               # a cut episode: step terms only
+    failed = step_reward(term, False, "timeout", 3, 2, 0.0, 4.0)
+    assert failed == pytest.approx(term.step + term.timeout + min(term.r_f_max, term.alpha3 / 4.0))
+    # the other outcomes do not depend on the mode
+    for outcome in ("success", "collision"):
+        assert step_reward(term, True, outcome, 2, 1, 5.0, 3.0) == step_reward(trunc, True, outcome, 2, 1, 5.0, 3.0)
+    with pytest.raises(ConfigError, match=r"timeout_mode"):
+        EnvConfig.load(overrides={"reward.timeout_mode": "bootstrap"})
+    with pytest.raises(ConfigError, match=r"threat_entry.*<= 0"):
+        EnvConfig.load(overrides={"reward.threat_entry": 1.0})
