@@ -35,6 +35,8 @@ def test_episode_gif(tmp_path):
                  "--every", "10", "-o", str(out)]) == 0
     frames = imageio.mimread(out)
     assert len(frames) >= 3
+    from PIL import Image
+    assert Image.open(out).info["duration"] == round(1000 * World(load_map("dual_lane_4way")).dt * 10)  # ms
 
 
 def test_cli_errors_are_clear(capsys):

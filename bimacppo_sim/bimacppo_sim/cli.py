@@ -1,9 +1,12 @@
-"""bimacppo-sim: render scenarios, run scripted episodes to GIF, build the reference
-table of the scripted drivers, and benchmark the world."""
+"""bimacppo-sim: render scenarios, run scripted episodes to GIF, render a recording (MCAP) to
+GIF, build the reference table of the scripted drivers, and benchmark the world."""
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
+import tempfile
 import time
 import tracemalloc
 from collections import Counter
@@ -41,6 +44,78 @@ def cmd_episode(a):
     res = run_episode(w, _scenario(a), a.driver, frames=grab)
     save_gif(frames, a.output, w.dt * a.every)
     print(f"{a.driver}: {res.outcome} after {res.time:.1f}s (collided_with={res.collided_with}); wrote {a.output}")
+
+
+def output_path(output: str, source: str, overwrite: bool) -> str:
+    """Where render-bag may write: a .gif in an existing directory; an existing file only with
+    ``overwrite``, and never the recording itself."""
+    if not output.lower().endswith(".gif"):
+        raise ValueError(f"output must be a .gif file, got {output!r}")
+    folder = os.path.dirname(os.path.abspath(output))
+    if not os.path.isdir(folder):
+        raise ValueError(f"output directory does not exist: {folder}")
+    if os.path.isdir(output):
+        raise ValueError(f"{output} is a directory")
+    if os.path.exists(output):
+        if os.path.exists(source) and os.path.samefile(output, source):
+            raise ValueError(f"{output} is the recording itself: refusing to overwrite it")
+        if not overwrite:
+            raise ValueError(f"{output} exists: refusing to overwrite it (pass --overwrite, or name a new file)")
+    return output
+
+
+def _frame_dt(frames, fallback: float) -> float:
+    """Seconds between consecutive states of the recording (median; the source's own dt)."""
+    import numpy as np
+    d = np.diff([f.stamp_ns for f in frames]) / 1e9
+    d = d[d > 0]
+    return float(np.median(d)) if len(d) else fallback
+
+
+def cmd_render_bag(a):
+    from tqdm import tqdm
+
+    from .config import WorldConfig
+    from .render import FrameView, GifWriter, Renderer
+    try:   # the message types of the recording: only this command needs ROS
+        from .ros.bag_frames import read_bag
+    except ImportError as exc:
+        raise ValueError(f"render-bag needs the ROS 2 Python packages (rclpy, common_interfaces): {exc}") from None
+    if a.every < 1 or a.max_frames < 1:
+        raise ValueError(f"--every and --max-frames must be >= 1, got {a.every} and {a.max_frames}")
+    output = a.output or os.path.splitext(os.path.basename(os.path.normpath(a.bag)))[0] + ".gif"
+    output = output_path(output, a.bag, a.overwrite)
+    road, cfg = load_map(a.map), WorldConfig.load()
+    with tqdm(desc="reading", unit=" msg", disable=None, leave=False) as bar:
+        bag = read_bag(a.bag, progress=bar.update)
+    for topic, why in sorted(bag.skipped.items()):
+        print(f"warning: {topic}: skipped ({why})", file=sys.stderr)
+    if bag.damaged:
+        print(f"warning: {a.bag} is damaged, rendering what was readable: {bag.damaged}", file=sys.stderr)
+    frames = bag.frames
+    every = max(a.every, math.ceil(len(frames) / a.max_frames))
+    if every > a.every:
+        print(f"note: {len(frames)} states; drawing every {every}th to stay within --max-frames {a.max_frames}")
+    keep = [f for i, f in enumerate(frames) if i % every == 0 or f.outcome is not None]
+    view = FrameView(road, cfg)
+    r = Renderer(view, view=a.view)
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(output)}.", suffix=".part",
+                               dir=os.path.dirname(os.path.abspath(output)))
+    os.close(fd)
+    gif = GifWriter(tmp, _frame_dt(frames, cfg.dt) * every)
+    try:   # the GIF appears complete or not at all: an existing file is replaced only at the end
+        for f in tqdm(keep, desc="rendering", unit=" frame", disable=None, leave=False):
+            view.show(f.ego, f.svs, f.goal, f.route, f.time_s, f.task, f.outcome)
+            gif.append(r.rgb_array(x_imr=f.x_imr))
+        gif.close()
+        os.replace(tmp, output)
+    finally:
+        r.close()
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    outcomes = Counter(f.outcome for f in frames if f.outcome)
+    ends = ", ".join(f"{k}: {v}" for k, v in sorted(outcomes.items())) or "no episode result"
+    print(f"{len(keep)} frames of {len(frames)} states ({ends}); wrote {output}")
 
 
 def reference_table(map_id, episodes, seed0, drivers=DRIVERS, progress=True):
@@ -140,6 +215,17 @@ def build_parser():
     sp.add_argument("--every", type=int, default=2, help="keep every k-th frame")
     sp.add_argument("-o", "--output", default="episode.gif")
     sp.set_defaults(func=cmd_episode)
+    sp = sub.add_parser("render-bag", help="draw a recording (MCAP file or rosbag2 directory) as GIF")
+    sp.add_argument("bag", help="MCAP file or rosbag2 directory (any ROS 2 writer)")
+    sp.add_argument("-o", "--output", default="", help="GIF path (default: the bag's name with .gif)")
+    sp.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    sp.add_argument("--map", default="dual_lane_4way", help=f"map the recording ran on {available_maps()} "
+                    "or a YAML path")
+    sp.add_argument("--view", type=float, default=60.0, help="half-width of the view (m)")
+    sp.add_argument("--every", type=int, default=2, help="keep every k-th state (>= 1)")
+    sp.add_argument("--max-frames", type=int, default=1000,
+                    help="at most this many frames: a longer recording keeps fewer states")
+    sp.set_defaults(func=cmd_render_bag)
     sp = sub.add_parser("reference", help="success/collision/timeout table of the scripted drivers")
     sp.add_argument("--map", default="dual_lane_4way")
     sp.add_argument("--episodes", type=int, default=100)
@@ -161,6 +247,9 @@ def main(argv=None):
     except ValueError as exc:
         print(f"bimacppo-sim: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("bimacppo-sim: interrupted", file=sys.stderr)
+        return 130
     return 0
 
 

@@ -1,7 +1,8 @@
 """Bird's-eye rendering with matplotlib (Agg): PNG files, RGB arrays, GIF episodes.
 
 The road is drawn once per Renderer (static background); each frame only moves the
-vehicle polygons, so rgb_array rendering for gymnasium stays cheap-ish.
+vehicle polygons, so rgb_array rendering for gymnasium stays cheap-ish. The Renderer draws a
+World, or a :class:`FrameView`: states that come from elsewhere (a recording) on a map.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from matplotlib.patches import Circle, Polygon, Rectangle  # noqa: E402
 from .geometry import box_corners  # noqa: E402
 
 STYLE_COLOURS = {"aggressive": "#d62728", "moderate": "#ff7f0e", "conservative": "#1f77b4"}
+SV_COLOUR = "#17becf"       # an SV whose driver style is unknown (e.g. read from a recording)
 EV_COLOUR = "#2ca02c"
 ROAD, GRASS, MARK = "#5a5a5a", "#cfe3c0", "#f0f0f0"
 
@@ -75,12 +77,13 @@ class Renderer:
         veh = w.cfg.vehicle
         if show_route and w.route is not None:
             self._dyn += ax.plot(w.route[:, 0], w.route[:, 1], ".", color="#9467bd", ms=3, zorder=2)
-        self._dyn.append(ax.scatter([w.goal[0]], [w.goal[1]], marker="*", s=160, color="gold",
-                                    edgecolors="k", zorder=3))
+        if w.goal is not None:
+            self._dyn.append(ax.scatter([w.goal[0]], [w.goal[1]], marker="*", s=160, color="gold",
+                                        edgecolors="k", zorder=3))
         for st, style, active in zip(w.sv_states(), w.sv_styles, w.sv_active):
             if active:
                 self._dyn.append(ax.add_patch(Polygon(box_corners(st[0], st[1], st[3], veh.length, veh.width),
-                                                      color=STYLE_COLOURS[style], zorder=4)))
+                                                      color=STYLE_COLOURS.get(style, SV_COLOUR), zorder=4)))
         ex, ey, ev, epsi = w.ego_tuple()
         if w.scenario is not None and w.scenario.ev_present:
             self._dyn.append(ax.add_patch(Polygon(box_corners(ex, ey, epsi, veh.length, veh.width),
@@ -118,6 +121,48 @@ class Renderer:
         plt.close(self.fig)
 
 
+class FrameView:
+    """The part of a World that :class:`Renderer` draws, set from outside (one state at a time).
+
+    ``road`` and ``cfg`` (vehicle bodies) are a map's and a WorldConfig's; :meth:`show` sets the
+    EV ``[x, y, v, psi]``, the SVs ``(n, 4)`` (style unknown: drawn in ``SV_COLOUR``, all active),
+    goal ``[x, y, psi]`` or None, route ``(M, >= 2)`` or None, the episode time, task and outcome.
+    """
+
+    class _Scenario:
+        ev_present = True
+
+        def __init__(self, task: str):
+            self.task = task
+
+    def __init__(self, road, cfg):
+        self.road, self.cfg = road, cfg
+        self.show(np.zeros(4))
+
+    def show(self, ego, svs=None, goal=None, route=None, time: float = 0.0, task: str = "",
+             outcome=None) -> "FrameView":
+        self._ego = tuple(float(c) for c in np.asarray(ego, float).reshape(4))
+        self._svs = np.zeros((0, 4)) if svs is None else np.asarray(svs, float).reshape(-1, 4)
+        self.goal = None if goal is None else np.asarray(goal, float)
+        self.route = None if route is None or len(route) < 2 else np.asarray(route, float)
+        self.time, self.outcome, self.scenario = float(time), outcome, self._Scenario(task)
+        return self
+
+    def ego_tuple(self):
+        return self._ego
+
+    def sv_states(self) -> np.ndarray:
+        return self._svs
+
+    @property
+    def sv_styles(self):
+        return [None] * len(self._svs)
+
+    @property
+    def sv_active(self):
+        return [True] * len(self._svs)
+
+
 def render_rgb(world, **kw) -> np.ndarray:
     """One-off RGB frame (H, W, 3) uint8 of the world's current state."""
     r = Renderer(world)
@@ -127,6 +172,38 @@ def render_rgb(world, **kw) -> np.ndarray:
         r.close()
 
 
+class GifWriter:
+    """An animated GIF built one RGB frame at a time, each shown ``dt`` seconds, looping.
+
+    Frames are palette-quantised as they arrive (a GIF holds 256 colours per frame anyway), so
+    a long animation keeps a third of its RGB size in memory until :meth:`close` writes the file.
+    GIF stores frame durations in milliseconds (rounded to 10 ms by most players).
+    """
+
+    def __init__(self, path, dt: float):
+        if not dt > 0:
+            raise ValueError(f"GIF frame duration must be > 0 s, got {dt}")
+        self.path, self.duration_ms = path, int(round(1000.0 * dt))
+        self._frames = []
+
+    def append(self, rgb) -> None:
+        from PIL import Image
+        self._frames.append(Image.fromarray(np.asarray(rgb, dtype=np.uint8)).quantize(colors=256))
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def close(self) -> None:
+        if not self._frames:
+            raise ValueError(f"no frames to write to {self.path}")
+        first, *rest = self._frames
+        first.save(self.path, format="GIF", save_all=True, append_images=rest, duration=self.duration_ms,
+                   loop=0)
+        self._frames = []
+
+
 def save_gif(frames, path, dt: float):
-    import imageio.v2 as imageio
-    imageio.mimsave(path, frames, duration=dt, loop=0)
+    w = GifWriter(path, dt)
+    for f in frames:
+        w.append(f)
+    w.close()

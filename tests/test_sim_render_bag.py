@@ -1,0 +1,227 @@
+"""bimacppo-sim render-bag: a recording drawn as the bird's-eye GIF of ``bimacppo-sim episode``.
+
+The bags are written here with mcap_ros2's writer (not our recorder) from real World episodes,
+each message built by the converters of interfaces.py; bad inputs give one error line and exit
+2, and an existing output survives unless --overwrite.
+"""
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+from mcap_ros2.writer import Writer as Ros2Writer  # noqa: E402
+from PIL import Image  # noqa: E402
+
+from bimacppo_sim import Scenario, World, load_map  # noqa: E402
+from bimacppo_sim.cli import main  # noqa: E402
+from bimacppo_sim.drivers import run_episode  # noqa: E402
+from bimacppo_sim.render import EV_COLOUR  # noqa: E402
+from bimacppo_sim.ros import interfaces as I  # noqa: E402
+from bimacppo_sim.ros import mcap_io  # noqa: E402
+
+MAP = "single_lane_4way"
+EPISODES = (Scenario(1, "straight", 3), Scenario(0, "left", 4))
+
+
+def _plain(msg):
+    """An rclpy message as nested dicts and lists (what mcap_ros2's encoder takes)."""
+    if hasattr(msg, "get_fields_and_field_types"):
+        return {name: _plain(getattr(msg, name)) for name in msg.get_fields_and_field_types()}
+    if isinstance(msg, (list, tuple)) or hasattr(msg, "tolist"):
+        return [_plain(v) for v in (msg.tolist() if hasattr(msg, "tolist") else msg)]
+    if isinstance(msg, bytes) and len(msg) == 1:   # rclpy's ``byte`` fields (DiagnosticStatus.level)
+        return msg[0]
+    return msg
+
+
+def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, odom_type=None):
+    """Episodes of a World driven by the 'go' driver, as the graph publishes them; returns
+    (stamps of the states, outcomes, EV states)."""
+    w = World(load_map(MAP))
+    stamps, outcomes, egos = [], [], []
+    k = [0]
+    with open(path, "wb") as f:
+        bag = Ros2Writer(f, chunk_size=chunk_size)
+        schemas = {}
+
+        def put(topic, msg, stamp):
+            if topic not in with_topics:
+                return
+            type_name = odom_type if (topic == I.TOPIC_EGO_ODOM and odom_type) else I.TOPIC_TYPES[topic]
+            if type_name not in schemas:
+                schemas[type_name] = bag.register_msgdef(type_name, mcap_io.full_definition(type_name))
+            bag.write_message(topic, schemas[type_name], _plain(msg), log_time=stamp, publish_time=stamp)
+
+        def tick(world):
+            k[0] += 1
+            stamp = k[0] * 100_000_000
+            ego = world.ego
+            if len(stamps) == 0 or world.time == 0.0:
+                put(I.TOPIC_GOAL, I.goal_to_pose(world.goal, stamp), stamp)
+            odom = I.state_to_odometry(ego, stamp)
+            if odom_type:
+                from std_msgs.msg import String
+                odom = String(data="not an odometry")
+            put(I.TOPIC_EGO_ODOM, odom, stamp)
+            if len(stamps) % 7 == 0:   # a lockstep re-send: the same state twice
+                put(I.TOPIC_EGO_ODOM, odom, stamp)
+            svs = world.sv_states()
+            put(I.TOPIC_OBJECTS, I.svs_to_objects([f"sv{i}" for i in range(len(svs))], svs, stamp), stamp)
+            put(I.TOPIC_MARKERS, I.world_markers(ego, svs, world.goal, world.route, stamp), stamp)
+            x_imr = ego + np.array([2.0 * np.cos(ego[3]), 2.0 * np.sin(ego[3]), 0.5, 0.0])
+            put(I.TOPIC_REFERENCE, I.reference_to_odometry(x_imr, stamp), stamp)
+            stamps.append(stamp)
+            egos.append(ego)
+
+        for sc in EPISODES:
+            res = run_episode(w, sc, "go", frames=tick)
+            outcomes.append(res.outcome)
+            st = I.result_to_status(I.EpisodeResult(res.outcome, None, sc.n_sv, sc.task, sc.seed, res.steps,
+                                                    stamps[-1]))
+            put(I.TOPIC_RESULT, st, stamps[-1])
+            k[0] += 1   # a reset advances one tick
+        bag.finish()
+    return stamps, outcomes, np.array(egos)
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bag") / "run.mcap"
+    stamps, outcomes, egos = _write_bag(path)
+    return path, stamps, outcomes, egos
+
+
+def _gif(path):
+    im = Image.open(path)
+    frames = []
+    for i in range(im.n_frames):
+        im.seek(i)
+        frames.append((np.asarray(im.convert("RGB")), im.info.get("duration")))
+    return frames
+
+
+def _ev_centre(rgb):
+    """Pixel centroid (row, col) of the EV's colour."""
+    target = np.array([int(EV_COLOUR[i:i + 2], 16) for i in (1, 3, 5)])
+    rows, cols = np.nonzero(np.abs(rgb.astype(int) - target).sum(axis=2) < 30)
+    assert len(rows), "EV not drawn"
+    return rows.mean(), cols.mean()
+
+
+def _errors(capsys):
+    err = capsys.readouterr().err
+    return [ln for ln in err.splitlines() if "error:" in ln], err
+
+
+def test_render_bag_draws_every_other_state_of_each_episode(bag, tmp_path, capsys):
+    path, stamps, outcomes, egos = bag
+    out = tmp_path / "run.gif"
+    assert main(["render-bag", str(path), "-o", str(out), "--map", MAP, "--every", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert f"wrote {out}" in printed and all(o in printed for o in outcomes)
+    frames = _gif(out)
+    # one frame per distinct state (re-sends drawn once), every 2nd, plus each episode's terminal state
+    ends = [i for i, s in enumerate(stamps) if i + 1 == len(stamps) or stamps[i + 1] - s > 100_000_000]
+    assert len(ends) == len(EPISODES)
+    assert len(frames) == len(range(0, len(stamps), 2)) + len([i for i in ends if i % 2])
+    assert {d for _, d in frames} == {200}            # dt of the recording (0.1 s) x 2, in ms
+    first, last = _ev_centre(frames[0][0]), _ev_centre(frames[len(range(0, ends[0] + 1, 2)) - 1][0])
+    # episode 1 drives north (straight from the south arm): up the image, as the recording says
+    assert egos[ends[0], 1] > egos[0, 1] + 10
+    assert last[0] < first[0] - 20
+    assert not np.array_equal(frames[0][0], frames[1][0])
+
+
+def test_render_bag_without_reference_and_markers_still_draws_states(tmp_path, capsys):
+    path = tmp_path / "states.mcap"
+    stamps, _, _ = _write_bag(path, with_topics=(I.TOPIC_EGO_ODOM, I.TOPIC_OBJECTS))
+    full = tmp_path / "full.mcap"
+    _write_bag(full)
+    a, b = tmp_path / "a.gif", tmp_path / "b.gif"
+    assert main(["render-bag", str(path), "-o", str(a), "--map", MAP, "--every", "5"]) == 0
+    assert main(["render-bag", str(full), "-o", str(b), "--map", MAP, "--every", "5"]) == 0
+    fa, fb = _gif(a), _gif(b)
+    assert len(fa) == len(range(0, len(stamps), 5))     # no results: no terminal frames added
+    assert "no episode result" in capsys.readouterr().out
+    # the same states; goal, route and x_IMR only where the bag has them
+    assert not np.array_equal(fa[3][0], fb[3][0])
+    # (x_IMR, drawn over the EV in one of them, hides a few of its pixels: 4 px = 1 m)
+    assert _ev_centre(fa[3][0]) == pytest.approx(_ev_centre(fb[3][0]), abs=3.0)
+
+
+def test_max_frames_thins_a_long_recording(bag, tmp_path, capsys):
+    path, stamps, outcomes, _ = bag
+    out = tmp_path / "short.gif"
+    assert main(["render-bag", str(path), "-o", str(out), "--map", MAP, "--max-frames", "10"]) == 0
+    printed = capsys.readouterr().out
+    every = -(-len(stamps) // 10)
+    assert f"every {every}th" in printed
+    frames = _gif(out)
+    assert 10 <= len(frames) <= 10 + len(outcomes)
+    assert {d for _, d in frames} == {100 * every}
+
+
+def test_existing_output_is_kept_unless_overwrite(bag, tmp_path, capsys):
+    path = bag[0]
+    out = tmp_path / "run.gif"
+    out.write_bytes(b"precious")
+    assert main(["render-bag", str(path), "-o", str(out), "--map", MAP]) == 2
+    errors, err = _errors(capsys)
+    assert len(errors) == 1 and "exists" in errors[0] and "--overwrite" in errors[0] and "Traceback" not in err
+    assert out.read_bytes() == b"precious"
+    assert main(["render-bag", str(path), "-o", str(out), "--map", MAP, "--every", "20", "--overwrite"]) == 0
+    assert len(_gif(out)) >= 2
+    assert not list(tmp_path.glob(".run.gif.*"))      # no temporary file left behind
+    # the recording itself is never the output, --overwrite or not
+    gif_named_bag = tmp_path / "bag.gif"
+    gif_named_bag.write_bytes(path.read_bytes())
+    assert main(["render-bag", str(gif_named_bag), "-o", str(gif_named_bag), "--overwrite", "--map", MAP]) == 2
+    errors, _ = _errors(capsys)
+    assert len(errors) == 1 and "recording itself" in errors[0]
+    assert gif_named_bag.read_bytes() == path.read_bytes()
+
+
+@pytest.mark.parametrize("case", ["missing", "garbage", "no_odom", "wrong_type", "not_gif", "no_dir"])
+def test_bad_inputs_are_one_error_line(case, bag, tmp_path, capsys):
+    src, out = tmp_path / "x.mcap", tmp_path / "x.gif"
+    want = {"missing": "no such file", "garbage": "not a readable MCAP", "no_odom": "/ego/odom",
+            "wrong_type": "std_msgs/msg/String", "not_gif": ".gif", "no_dir": "does not exist"}[case]
+    if case == "garbage":
+        src.write_bytes(np.random.default_rng(0).bytes(4096))
+    elif case == "no_odom":
+        _write_bag(src, with_topics=(I.TOPIC_GOAL, I.TOPIC_OBJECTS))
+    elif case == "wrong_type":
+        _write_bag(src, odom_type="std_msgs/msg/String")
+    elif case in ("not_gif", "no_dir"):
+        src = bag[0]
+        out = tmp_path / "x.png" if case == "not_gif" else tmp_path / "nowhere" / "x.gif"
+    assert main(["render-bag", str(src), "-o", str(out), "--map", MAP]) == 2
+    errors, err = _errors(capsys)
+    assert len(errors) == 1 and want in errors[0], err
+    assert "Traceback" not in err and not out.exists()
+    if case == "no_odom":
+        assert I.TOPIC_GOAL in errors[0]      # says what the bag holds instead
+
+
+def _damage_middle_chunk(src, dst):
+    from mcap.reader import make_reader
+    data = bytearray(src.read_bytes())
+    with open(src, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    ci = chunks[len(chunks) // 2]
+    records_at = ci.chunk_start_offset + 9 + 8 + 8 + 8 + 4 + 4 + len(ci.compression) + 8
+    for i in range(ci.compressed_size // 3, ci.compressed_size // 3 + 6):
+        data[records_at + i] ^= 0x5A
+    dst.write_bytes(bytes(data))
+
+
+def test_damaged_chunk_renders_the_rest_with_a_warning(tmp_path, capsys):
+    good, bad = tmp_path / "good.mcap", tmp_path / "bad.mcap"
+    _write_bag(good, chunk_size=16 * 1024)
+    _damage_middle_chunk(good, bad)
+    a, b = tmp_path / "good.gif", tmp_path / "bad.gif"
+    assert main(["render-bag", str(good), "-o", str(a), "--map", MAP, "--every", "1"]) == 0
+    capsys.readouterr()
+    assert main(["render-bag", str(bad), "-o", str(b), "--map", MAP, "--every", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "warning:" in err and "damaged" in err and "Traceback" not in err
+    assert 0 < len(_gif(b)) < len(_gif(a))
