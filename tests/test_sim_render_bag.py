@@ -225,3 +225,19 @@ def test_damaged_chunk_renders_the_rest_with_a_warning(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "warning:" in err and "damaged" in err and "Traceback" not in err
     assert 0 < len(_gif(b)) < len(_gif(a))
+
+
+def test_rosbag2_directory_renders_its_files(bag, tmp_path, capsys):
+    import shutil
+
+    import yaml
+    path, stamps, _, _ = bag
+    d = tmp_path / "run_bag"
+    d.mkdir()
+    shutil.copy(path, d / "run_0.mcap")
+    (d / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
+        "version": 9, "storage_identifier": "mcap", "relative_file_paths": ["run_0.mcap"]}}))
+    out = tmp_path / "dir.gif"
+    assert main(["render-bag", str(d), "-o", str(out), "--map", MAP, "--every", "10"]) == 0
+    assert f"of {len(stamps)} states" in capsys.readouterr().out
+    assert len(_gif(out)) >= len(range(0, len(stamps), 10))

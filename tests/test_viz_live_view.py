@@ -207,10 +207,13 @@ def policy_file(tmp_path_factory):
     return path
 
 
-def test_graph_live_view_flag_shows_the_running_graph(policy_file):
+def test_graph_live_view_flag_shows_the_running_graph(policy_file, tmp_path):
+    """``bimacppo-graph --live-view PORT``: the view serves the real graph, which records as usual;
+    the recording (our recorder's) renders with ``bimacppo-sim render-bag``."""
     port = _free_port()
+    mcap, gif = tmp_path / "run.mcap", tmp_path / "run.gif"
     proc = _start("-m", "bimacppo_planner.ros.graph", "--episodes", "1", "--scheduler", "fixed",
-                  "--policy", str(policy_file), "--no-record", "--timeout", "90", "--live-view", str(port))
+                  "--policy", str(policy_file), "--output", str(mcap), "--timeout", "90", "--live-view", str(port))
     try:
         client = _connect(port, proc, timeout=60)
         channels = _handshake(client)
@@ -227,3 +230,8 @@ def test_graph_live_view_flag_shows_the_running_graph(policy_file):
     assert len(route) >= 2
     ev = got[S.CH_VEHICLES][-1].entities[0]
     assert ev.id == "ego" and np.isfinite(ev.cubes[0].pose.position.x)
+    r = subprocess.run([sys.executable, "-m", "bimacppo_sim.cli", "render-bag", str(mcap), "-o", str(gif),
+                        "--every", "5"], capture_output=True, text=True, env=ENV, timeout=300)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stdout + r.stderr
+    assert "(" in r.stdout and f"wrote {gif}" in r.stdout and "no episode result" not in r.stdout, r.stdout
+    assert gif.stat().st_size > 0
