@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from bimacppo_planner.decision import (ConfigError, EnvConfig, ObservationConfig, WaypointTracker,
+from bimacppo_planner.decision import (ActionConfig, ConfigError, EnvConfig, ObservationConfig, WaypointTracker,
                                        decode_action, observe, wrap_angle)
 
 
@@ -118,6 +118,10 @@ VARIANTS = {   # variant file -> what it changes relative to the packaged env.ya
     "bimacppo_learning/bimacppo_learning/config/env_yield.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}, "reward": {"timeout_mode": "truncate", "threat_entry": -10.0}},
+    "bimacppo_learning/bimacppo_learning/config/env_yield_hold.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
+         "action": {"decision_every": 3, "zero_speed": "hold"},
+         "reward": {"timeout_mode": "truncate", "threat_entry": -10.0}},
     "studies/config/env_extended_safe.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}, "reward": {"collision_base": -30.0}},
@@ -182,3 +186,31 @@ def test_timeout_pays_the_failure_terms_only_when_terminal():
         EnvConfig.load(overrides={"reward.timeout_mode": "bootstrap"})
     with pytest.raises(ConfigError, match=r"threat_entry.*<= 0"):
         EnvConfig.load(overrides={"reward.threat_entry": 1.0})
+
+
+def test_hold_decodes_a_zero_speed_to_the_ev_pose_whatever_the_waypoint():
+    route = np.array([[0.0, float(y), math.pi / 2] for y in range(0, 40, 3)])
+    tr = WaypointTracker(route, 5)
+    tr.update(0.0, 1.0)
+    ego = np.array([0.2, 1.0, 6.0, 1.5])
+    lateral = lambda x, y, psi, side: (x - 3.5 * side, y, psi)     # noqa: E731
+    paper = ActionConfig(n_waypoints=5, speeds=(0.0, 2.0, 4.0, 6.0, 8.0), lane_change=(-1, 0, 1),
+                         decision_every=3, zero_speed="waypoint")
+    hold = dataclasses_replace(paper, zero_speed="hold")
+    for a1 in range(5):
+        for a3 in range(3):
+            x, changed = decode_action([a1, 0, a3], tr, hold, lateral, ego)
+            np.testing.assert_array_equal(x, [0.2, 1.0, 0.0, 1.5])
+            assert not changed
+            xp, _ = decode_action([a1, 0, a3], tr, paper, lateral, ego)      # the paper: the waypoint at 0 m/s
+            assert xp[2] == 0.0 and xp[1] == pytest.approx(tr.candidates()[a1][1])
+    # other speeds decode the same in both modes
+    np.testing.assert_array_equal(decode_action([3, 2, 1], tr, hold, lateral, ego)[0],
+                                  decode_action([3, 2, 1], tr, paper, lateral, ego)[0])
+    with pytest.raises(ValueError, match="needs the EV pose"):
+        decode_action([0, 0, 1], tr, hold, lateral)
+
+
+def dataclasses_replace(obj, **kw):
+    import dataclasses
+    return dataclasses.replace(obj, **kw)

@@ -93,7 +93,7 @@ class HighLevelPlanner:
         obs = observe(self.cfg.observation, ego, self.goal, svs)
         self.tracker.update(ego[0], ego[1])
         action = self.policy.act(obs, deterministic=True)
-        x_imr, changed = decode_action(action, self.tracker, self.cfg.action, self.road.lateral_point)
+        x_imr, changed = decode_action(action, self.tracker, self.cfg.action, self.road.lateral_point, ego)
         return x_imr, {"action": action, "obs": obs, "lane_change": changed,
                        "candidates": self.tracker.candidates()}
 

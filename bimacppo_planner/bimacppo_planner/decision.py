@@ -19,6 +19,7 @@ from bimacppo_common.config import ConfigError, Packaged, config_class, invalid,
 
 TWO_PI = 2.0 * math.pi
 TIMEOUT_MODES = ("terminal", "truncate")
+ZERO_SPEED_MODES = ("waypoint", "hold")
 
 
 def wrap_angle(a: float) -> float:
@@ -49,6 +50,7 @@ class ActionConfig:
     speeds: tuple[float, ...] = setting(lo=0.0, min_length=1)
     lane_change: tuple[int, ...]
     decision_every: int = setting(lo=1)
+    zero_speed: str = setting(choices=ZERO_SPEED_MODES)   # waypoint (paper) | hold: see env.yaml
 
     def _check(self) -> None:
         if self.lane_change != (-1, 0, 1):
@@ -174,15 +176,22 @@ class WaypointTracker:
         return self.route[j]
 
 
-def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_point) -> tuple[np.ndarray, bool]:
+def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_point,
+                  ego=None) -> tuple[np.ndarray, bool]:
     """MultiDiscrete action -> x_IMR = [x, y, v, psi] (eq. 31), and whether a lane change was taken.
 
     ``lateral_point(x, y, psi, side)`` gives the matching point on the adjacent lane or None;
     where there is no adjacent lane the waypoint stays (and it does not count as a lane change).
+    With ``cfg.zero_speed == "hold"`` a zero speed (A2 = 0 m/s) means "stop where you are": x_IMR
+    is the EV's own pose ``ego`` = [x, y, v, psi] at 0 m/s, whatever A1 and A3 say.
     """
     a1, a2, a3 = int(action[0]), int(action[1]), int(action[2])
     if not (0 <= a1 < cfg.n_waypoints and 0 <= a2 < len(cfg.speeds) and 0 <= a3 < len(cfg.lane_change)):
         raise ValueError(f"action {tuple(action)} outside MultiDiscrete({[cfg.n_waypoints, len(cfg.speeds), len(cfg.lane_change)]})")
+    if cfg.zero_speed == "hold" and cfg.speeds[a2] == 0.0:
+        if ego is None:
+            raise ValueError("action.zero_speed 'hold' needs the EV pose (ego) to decode a stop")
+        return np.array([float(ego[0]), float(ego[1]), 0.0, float(ego[3])], dtype=np.float64), False
     wx, wy, wpsi = tracker.candidates()[a1]
     side = cfg.lane_change[a3]
     changed = False
