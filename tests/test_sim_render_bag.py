@@ -241,3 +241,12 @@ def test_rosbag2_directory_renders_its_files(bag, tmp_path, capsys):
     assert main(["render-bag", str(d), "-o", str(out), "--map", MAP, "--every", "10"]) == 0
     assert f"of {len(stamps)} states" in capsys.readouterr().out
     assert len(_gif(out)) >= len(range(0, len(stamps), 10))
+
+
+def test_route_from_markers_takes_the_worlds_route_only():
+    from bimacppo_sim.ros.bag_frames import route_from_markers
+    route = np.array([[0.0, -50.0, 1.57], [0.0, -10.0, 1.57], [3.0, 2.0, 0.5]])
+    markers = I.world_markers([0, -50, 5, 1.57], np.zeros((2, 4)), [3, 2, 0.5], route, 100).markers
+    assert route_from_markers(markers).tolist() == route[:, :2].tolist()
+    assert route_from_markers(I.world_markers([0, 0, 0, 0], [], None, None, 100).markers) is None
+    assert route_from_markers(I.reference_markers([0, 0, 1, 0], 100).markers) is None

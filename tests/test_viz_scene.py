@@ -101,19 +101,6 @@ def test_json_messages_for_the_plots():
         assert set(msg) == set(schema["properties"]), name
 
 
-class _Marker:
-    def __init__(self, ns, type_, pts):
-        self.ns, self.type = ns, type_
-        self.points = [type("P", (), {"x": x, "y": y})() for x, y in pts]
-
-
-def test_route_from_markers_takes_the_route_line_strip_only():
-    markers = [_Marker("", 3, []), _Marker("ego", 1, []), _Marker("route", 4, [(0, -50), (0, -10), (3, 2)])]
-    assert S.route_from_markers(markers).tolist() == [[0, -50], [0, -10], [3, 2]]
-    assert S.route_from_markers(markers[:2]) is None
-    assert S.route_from_markers([_Marker("route", 4, [(1, 1)])]) is None   # one point is no line
-
-
 def _read_mcap(path):
     """{topic: [decoded message, ...]} of an MCAP the foxglove SDK wrote (protobuf and JSON)."""
     from mcap.reader import make_reader

@@ -24,7 +24,7 @@ which the world's RViz markers use too.
 from __future__ import annotations
 
 import math
-from typing import Iterable, Mapping, Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
 from foxglove import messages as fm
@@ -282,14 +282,3 @@ class LiveScene:
 
     def on_result(self, values: Mapping[str, str], stamp_ns: int) -> None:
         self._log(CH_EPISODE, episode_json(values, stamp_ns))
-
-
-def route_from_markers(markers: Iterable, ns: str = ENTITY_ROUTE) -> Optional[np.ndarray]:
-    """The route polyline of a marker list (the world's ``/objects/markers``: LINE_STRIP ``route``),
-    as an ``(M, 2)`` array, or None if it holds none. ``markers`` need ``ns``, ``type`` and
-    ``points`` (each with ``x``, ``y``) like ``visualization_msgs/Marker``."""
-    line_strip = 4   # visualization_msgs/Marker.LINE_STRIP
-    for m in markers:
-        if m.ns == ns and m.type == line_strip and len(m.points) >= 2:
-            return np.array([[p.x, p.y] for p in m.points], dtype=float)
-    return None

@@ -38,7 +38,7 @@ TOPICS = {   # topic -> message class; /ego/odom is the one a frame needs
     I.TOPIC_MARKERS: I.MarkerArray,
     I.TOPIC_RESULT: I.DiagnosticStatus,
 }
-ROUTE_MARKER_NS = "route"
+ROUTE_MARKER_NS = "route"   # interfaces.world_markers: the world's A* route as LINE_STRIP "route"
 
 
 class BagRenderError(ValueError):
@@ -72,6 +72,14 @@ def _same_type(a: str, b: str) -> bool:
         return mcap_io.split_type(a) == mcap_io.split_type(b)
     except mcap_io.DefinitionNotFound:
         return False
+
+
+def route_from_markers(markers) -> Optional[np.ndarray]:
+    """The world's route in a marker list (``/objects/markers``) as an ``(M, 2)`` array, or None."""
+    for mk in markers:
+        if mk.ns == ROUTE_MARKER_NS and mk.type == I.Marker.LINE_STRIP and len(mk.points) >= 2:
+            return np.array([[p.x, p.y] for p in mk.points], dtype=float)
+    return None
 
 
 def _latest(stamps: List[int], items: list, stamp: int):
@@ -132,11 +140,9 @@ def read_bag(path, progress: Optional[Callable[[int], None]] = None) -> BagFrame
     def stamped(fn):
         return lambda m: (I.stamp_to_ns(m.header.stamp), fn(m))
 
-    def route(m):
-        for mk in m.markers:
-            if mk.ns == ROUTE_MARKER_NS and mk.type == I.Marker.LINE_STRIP and len(mk.points) >= 2:
-                return (I.stamp_to_ns(mk.header.stamp), np.array([[p.x, p.y] for p in mk.points]))
-        return (-1, None)
+    def route(m):   # every marker of the array carries the tick's stamp
+        pts = route_from_markers(m.markers)
+        return (I.stamp_to_ns(m.markers[0].header.stamp), pts) if pts is not None else (-1, None)
 
     def result(m):
         values = I.result_extras(m)

@@ -20,7 +20,9 @@ from bimacppo_sim.config import WorldConfig
 from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import ConfigError, guarded, one_line, run_single
 
-from ..scene import CHANNELS, LiveScene, route_from_markers
+from bimacppo_sim.ros.bag_frames import route_from_markers
+
+from ..scene import CHANNELS, LiveScene
 
 NODE_NAME = "live_view"
 DEFAULT_HOST = "127.0.0.1"
@@ -55,7 +57,6 @@ class LiveViewNode(Node):
             raise ConfigError(f"{NODE_NAME}: parameter host must not be empty")
         topics = {n: str(g(n)) for n in TOPIC_PARAMETERS}
         self.errors: dict = {}
-        self.received = {n: 0 for n in TOPIC_PARAMETERS}
 
         import foxglove
         veh = WorldConfig.load().vehicle
@@ -69,10 +70,7 @@ class LiveViewNode(Node):
         self.url = f"ws://{host}:{self.server.port}"
 
         def sub(param, msg_type, qos, fn):
-            def cb(msg):
-                fn(msg)
-                self.received[param] += 1
-            return self.create_subscription(msg_type, topics[param], guarded(self, topics[param], cb, self.errors), qos)
+            return self.create_subscription(msg_type, topics[param], guarded(self, topics[param], fn, self.errors), qos)
 
         # the latched goal and the results first: when several are ready at once, the executor
         # serves subscriptions in creation order (docs/interfaces.md, episode boundaries)
