@@ -187,3 +187,26 @@ def test_qos_yaml_round_trip_and_legacy_integers():
     (r,) = mcap_io.qos_from_yaml(legacy)
     assert (r.reliability, r.durability, r.depth) == ("best_effort", "transient_local", 5)
     assert mcap_io.qos_from_yaml(":: not yaml [") == []
+
+
+def test_objects_without_svs_may_have_no_point():
+    """No SVs: no joint names, with one empty point (what the world sends) or none at all."""
+    for points in ([I.MultiDOFJointTrajectoryPoint()], []):
+        msg = I.svs_to_objects([], np.zeros((0, 4)), 7)
+        msg.points = points
+        ids, states = I.objects_to_svs(msg)
+        assert ids == [] and states.shape == (0, 4)
+    msg = I.svs_to_objects(["a"], _random_states(1), 7)
+    msg.points = []
+    with pytest.raises(I.MessageError, match="1 joint_names but no trajectory point"):
+        I.objects_to_svs(msg)
+
+
+def test_results_with_a_non_finite_fact_are_refused():
+    st = I.result_to_status(I.EpisodeResult("timeout", None, 1, "left", 3, 10, 5))
+    st.values += [I.KeyValue(key="dist_to_goal", value="2.5"), I.KeyValue(key="collided_with", value="sv_1")]
+    assert I.status_to_result(st).n_sv == 1
+    for bad in ("nan", "inf", "-Infinity"):
+        st2 = I.DiagnosticStatus(name=st.name, values=list(st.values) + [I.KeyValue(key="speed", value=bad)])
+        with pytest.raises(I.MessageError, match="speed is not finite"):
+            I.status_to_result(st2)

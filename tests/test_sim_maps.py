@@ -132,3 +132,67 @@ def test_pcp_per_manoeuvre_parts_add_up_and_reject_bad_input():
         r.pcp_count("u-turn", "north")
     with pytest.raises(ValueError, match="SV arm"):
         r.pcp_count("left", "south")
+
+
+# ----------------------------------------------------------------------------- map pose
+def test_map_pose_places_the_junction_in_the_map_frame_and_back(tmp_path):
+    """``pose`` moves the map's own frame (junction at its origin) into the fixed map frame:
+    a state and a pose go there and back unchanged; the lane geometry itself is unchanged."""
+    from bimacppo_sim.geometry import MapFrame
+
+    plain = load_map("dual_lane_4way")
+    moved = load_map(_write(tmp_path, pose={"x": 412.0, "y": -318.5, "heading": 0.6}))
+    assert plain.frame.identity and not moved.frame.identity
+    assert np.array_equal(moved.lanes["south_in_0"].points, plain.lanes["south_in_0"].points)
+    f = moved.frame
+    centre = f.poses_to_world(np.array([0.0, 0.0, 0.0]))
+    assert np.allclose(centre, [412.0, -318.5, 0.6])
+    # the south arm's in-lane heads north in the map's own frame: rotated by 0.6 rad in the map frame
+    x, y, psi = plain.lane_point("south_in_0", 10.0)
+    w = f.states_to_world(np.array([[x, y, 5.0, psi]]))[0]
+    assert math.isclose(w[3], psi + 0.6, abs_tol=1e-12) and w[2] == 5.0
+    assert math.hypot(w[0] - 412.0, w[1] + 318.5) == pytest.approx(math.hypot(x, y))
+    back = f.states_to_map(w)
+    assert np.allclose(back, [x, y, 5.0, psi], atol=1e-9)
+    assert f.states_to_map(np.zeros((0, 4))).shape == (0, 4)
+    assert MapFrame().states_to_world(np.array([1.0, 2.0, 3.0, 4.0])).tolist() == [1.0, 2.0, 3.0, 4.0]
+
+
+@pytest.mark.parametrize("pose, msg", [({"x": 1e6}, "out of range"), ({"x": 1.0, "z": 2.0}, "key 'pose'"),
+                                       ([1.0, 2.0], "key 'pose'"), ({"heading": 4.0}, "out of range")])
+def test_bad_map_pose_is_refused(tmp_path, pose, msg):
+    with pytest.raises(ValueError, match=msg):
+        load_map(_write(tmp_path, pose=pose))
+
+
+def test_n_pcp_inferred_from_what_a_receiver_sees_matches_the_world():
+    """From the EV's start, the goal and each SV's first and last positions: the world's
+    N_pcp whenever every SV was seen on its out-lane; never more than it otherwise."""
+    from bimacppo_sim import Scenario, World
+
+    road = load_map("dual_lane_4way")
+    w = World(road)
+    exact = lower = 0
+    for seed in range(12):
+        for task in TASKS:
+            w.reset(Scenario(n_sv=3, task=task, seed=seed))
+            ev0 = w.ego[:2].copy()
+            tracks = {i: [s[:2].copy(), s[:2].copy()] for i, s in zip(w.sv_ids, w.sv_states())}
+            for _ in range(300):
+                done = w.step(np.array([1.0, 0.0])).done
+                for i, s in zip(w.sv_ids, w.sv_states()):
+                    tracks[i][1] = s[:2].copy()
+                if done:
+                    break
+            n = road.infer_n_pcp(ev0, w.goal[:2], [tuple(t) for t in tracks.values()])
+            left = all((loc := road.locate(*last)) is not None and road.lanes[loc[0]].kind == "out"
+                       for _, last in tracks.values())
+            if left:
+                assert n == w.n_pcp, (task, seed)
+                exact += 1
+            else:
+                assert n <= w.n_pcp, (task, seed)
+                lower += 1
+    assert exact >= 5, (exact, lower)
+    assert road.infer_n_pcp(ev0, (0.0, 0.0), []) is None          # goal on no exit lane: no task
+    assert load_map("three_lane_straight").infer_n_pcp((0.0, 0.0), (0.0, 10.0), []) == 0

@@ -220,3 +220,51 @@ def point_segment_distances(points, poly, return_segment=False):
     j = np.argmin(d, axis=1)
     dist = d[np.arange(len(points)), j]
     return (dist, j) if return_segment else dist
+
+
+class MapFrame:
+    """Where a map's own frame (junction centre at the origin, the EV's arm to the south)
+    sits in the world's fixed ``map`` frame: translation (x, y) and rotation ``heading``
+    (rad, counter-clockwise). The simulator core and the planner work in the map's own
+    frame; the ROS boundary (world node, planner node) converts, so a source whose junction
+    lies elsewhere needs only a map file with that pose.
+
+    ``states``: rows [x, y, v, psi] (speed unchanged); ``poses``: rows [x, y, psi]."""
+
+    __slots__ = ("x", "y", "heading", "_c", "_s")
+
+    def __init__(self, x: float = 0.0, y: float = 0.0, heading: float = 0.0):
+        self.x, self.y, self.heading = float(x), float(y), float(heading)
+        self._c, self._s = math.cos(self.heading), math.sin(self.heading)
+
+    @property
+    def identity(self) -> bool:
+        return self.x == 0.0 and self.y == 0.0 and self.heading == 0.0
+
+    def _move(self, rows, cols, to_world: bool):
+        a = np.array(rows, dtype=float, copy=True)
+        flat = a.reshape(-1, a.shape[-1]) if a.size else a.reshape(0, len(cols) + 2)
+        if self.identity or not flat.size:
+            return a
+        x, y = flat[:, 0].copy(), flat[:, 1].copy()
+        c, s = self._c, self._s
+        if to_world:
+            flat[:, 0], flat[:, 1] = self.x + c * x - s * y, self.y + s * x + c * y
+        else:
+            dx, dy = x - self.x, y - self.y
+            flat[:, 0], flat[:, 1] = c * dx + s * dy, -s * dx + c * dy
+        for k in cols:
+            flat[:, k] = [wrap_angle(v + (self.heading if to_world else -self.heading)) for v in flat[:, k]]
+        return flat.reshape(a.shape)
+
+    def states_to_world(self, states):
+        return self._move(states, (3,), True)
+
+    def states_to_map(self, states):
+        return self._move(states, (3,), False)
+
+    def poses_to_world(self, poses):
+        return self._move(poses, (2,), True)
+
+    def poses_to_map(self, poses):
+        return self._move(poses, (2,), False)

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import yaml
 
-from .geometry import Path, bezier_connector, point_segment_distances, polyline_crossings
+from .geometry import MapFrame, Path, bezier_connector, point_segment_distances, polyline_crossings
 
 MAP_DIR = pathlib.Path(__file__).resolve().parent / "maps"
 TASKS = ("left", "straight", "right")
@@ -74,9 +74,24 @@ def _num(d, key, where, lo=None, hi=None, integer=False):
 
 
 FOUR_WAY_KEYS = {"id", "type", "lane_width", "lanes_per_direction", "corner_radius", "arm_length",
-                 "ev_arm", "sv_arms", "max_sv", "turns"}
+                 "ev_arm", "sv_arms", "max_sv", "turns", "pose"}
 STRAIGHT_KEYS = {"id", "type", "lane_width", "lanes", "length", "goal_ahead", "sv_ahead_min",
-                 "sv_ahead_max", "max_sv"}
+                 "sv_ahead_max", "max_sv", "pose"}
+MAX_POSE_OFFSET_M = 5000.0
+"""|pose.x|, |pose.y| bound: the map must fit inside the states receivers accept (1e4 m)."""
+
+
+def _pose(spec, where) -> MapFrame:
+    """Optional key ``pose: {x, y, heading}``: where the map's own frame sits in the fixed
+    ``map`` frame (default: at its origin)."""
+    if "pose" not in spec:
+        return MapFrame()
+    pose = spec["pose"]
+    if not isinstance(pose, dict) or set(pose) - {"x", "y", "heading"}:
+        _bad(where, "key 'pose' must be a mapping with keys x, y (m), heading (rad)")
+    return MapFrame(_num(pose, "x", where, -MAX_POSE_OFFSET_M, MAX_POSE_OFFSET_M) if "x" in pose else 0.0,
+                    _num(pose, "y", where, -MAX_POSE_OFFSET_M, MAX_POSE_OFFSET_M) if "y" in pose else 0.0,
+                    _num(pose, "heading", where, -math.pi, math.pi) if "heading" in pose else 0.0)
 
 
 class RoadMap:
@@ -98,6 +113,7 @@ class RoadMap:
             _bad(where, "key 'id' must be a string")
         self.id = spec["id"]
         self.kind = kind
+        self.frame = _pose(spec, where)   # everything below is built in the map's own frame
         self.lane_width = _num(spec, "lane_width", where, 2.0, 6.0)
         self.max_sv = _num(spec, "max_sv", where, 0, 16, integer=True)
         self.lanes: dict[str, Lane] = {}
@@ -454,6 +470,41 @@ class RoadMap:
         for m in ([sv_maneuver] if sv_maneuver else TASKS):
             for (i, j) in self.turns[m]:
                 total += self.connector_conflicts(ce, f"{sv_arm}_in_{i}>{self.exit_arm(sv_arm, m)}_out_{j}")
+        return total
+
+    def infer_n_pcp(self, ev_start_xy, goal_xy, sv_tracks) -> int | None:
+        """N_pcp of an episode from what a receiver of the states sees (map frame of this
+        road): the EV's connector from its lane at the start (``ev_start_xy``) and the task
+        the goal's lane implies; each SV's connector from the in-lane it was first seen in
+        and the out-lane it was last seen in (``sv_tracks``: (first_xy, last_xy) per SV).
+        An SV not yet seen on an out-lane counts its allowed connector with the fewest
+        points (a lower bound); an SV first seen elsewhere than on an SV arm's in-lane
+        counts 0. None if the goal is on no exit lane of the EV's arm (no task to infer)."""
+        if self.kind != "four_way":
+            return 0
+        goal = self.locate(float(goal_xy[0]), float(goal_xy[1]))
+        goal_lane = self.lanes[goal[0]] if goal is not None else None
+        task = next((m for m in TASKS if goal_lane is not None and goal_lane.kind == "out"
+                     and self.exit_arm(self.ev_arm, m) == goal_lane.arm), None)
+        if task is None:
+            return None
+        start = self.locate(float(ev_start_xy[0]), float(ev_start_xy[1]))
+        start_lane = self.lanes[start[0]] if start is not None else None
+        ev_in = start_lane.index if start_lane is not None and start_lane.kind == "in" and \
+            start_lane.arm == self.ev_arm else self.turns[task][0][0]
+        ce = self.ev_connector(ev_in, task)
+        total = 0
+        for first_xy, last_xy in sv_tracks:
+            f = self.locate(float(first_xy[0]), float(first_xy[1]))
+            fl = self.lanes[f[0]] if f is not None else None
+            if fl is None or fl.kind != "in" or fl.arm == self.ev_arm:
+                continue
+            options = [f"{fl.id}>{self.exit_arm(fl.arm, m)}_out_{j}" for m in TASKS
+                       for (i, j) in self.turns[m] if i == fl.index]
+            last = self.locate(float(last_xy[0]), float(last_xy[1]))
+            known = [c for c in options if last is not None and c.endswith(">" + last[0])]
+            counts = [self.connector_conflicts(ce, c) for c in (known or options)]
+            total += counts[0] if known else min(counts, default=0)
         return total
 
 

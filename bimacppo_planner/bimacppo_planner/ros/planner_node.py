@@ -11,7 +11,14 @@ and held in between.
 When the world reports the end of the episode (/episode/result), the planner republishes
 that result on /planner/episode_result with ``return`` added: the return is the agent's
 (``decision.step_reward``, eq. 26-28, the function the environment uses), not a fact of
-the world, so it is computed here.
+the world, so it is computed here. ``n_pcp`` is the source's key-value when it sends one;
+otherwise the planner infers it from its own map (``RoadMap.infer_n_pcp``: the EV's start
+lane, the goal's lane, each SV's first and last lane) and adds it to the message.
+
+Frames: the map file's ``pose`` says where its junction sits in the ``map`` frame; states,
+SVs and goal are moved into the map's own frame before the policy sees them and x_IMR is
+moved back (``geometry.MapFrame``), so a source whose junction is elsewhere needs only the
+matching map file (``map_id``: a map id or a YAML path).
 
 Faults (docs/faults.md): callbacks are ``runtime.guarded``; states older than the newest
 answered one of the episode or more than ``max_stamp_jump_s`` ahead are dropped
@@ -31,6 +38,7 @@ import numpy as np
 from rclpy.node import Node
 
 from bimacppo_planner.decision import EnvConfig, step_reward
+from bimacppo_sim.geometry import MapFrame
 from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import ConfigError, guarded, one_line, param_file, param_range, run_single
 from bimacppo_sim.ros.tick_follower import TickFollower
@@ -130,6 +138,8 @@ class PlannerNode(TickFollower, Node):
         if planner is None:
             planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"))
         self.hp = planner
+        self.road = getattr(self.hp, "road", None)
+        self.frame = getattr(self.road, "frame", None) or MapFrame()
         self.markers_on = bool(g("publish_markers"))
         # the agent's own environment config: reward terms and decision period as in training
         cfg = getattr(self.hp, "cfg", None)
@@ -140,6 +150,9 @@ class PlannerNode(TickFollower, Node):
         self.states: OrderedDict = OrderedDict()
         self.objects: OrderedDict = OrderedDict()
         self.decisions_ep: list = []     # (stamp, lane_change) of each decision of the current episode
+        self.ev_start = None             # the EV's (x, y) at the episode's first tick (map's own frame)
+        self.ep_goal = None              # the goal of the episode whose decisions are held (map's own frame)
+        self.sv_tracks: dict = {}        # SV id -> [first (x, y), last (x, y)] in the episode (map's own frame)
         self.ticks_ep = 0                # ticks answered in the current episode
         self.x_imr = None                # the decision held between decisions (decision_every > 1)
         self.decisions = 0
@@ -157,6 +170,15 @@ class PlannerNode(TickFollower, Node):
     def _clear_tick_caches(self) -> None:
         self.states.clear(), self.objects.clear()
         self.decisions_ep, self.ticks_ep = [], 0
+        self.ev_start, self.ep_goal, self.sv_tracks = None, None, {}
+
+    def _n_pcp(self, facts: dict) -> None:
+        """The source's n_pcp, else the one inferred from the planner's map (added to ``facts``)."""
+        if "n_pcp" in facts or self.road is None or self.ev_start is None:
+            return
+        n = self.road.infer_n_pcp(self.ev_start, self.ep_goal[:2], [tuple(t) for t in self.sv_tracks.values()])
+        if n is not None:
+            facts["n_pcp"] = str(int(n))
 
     def _on_goal(self, msg) -> None:
         self._accept_goal(msg)
@@ -177,8 +199,10 @@ class PlannerNode(TickFollower, Node):
         if not was_active:
             return
         flags = [c for s, c in self.decisions_ep if s < res.stamp_ns]
+        facts = I.result_extras(msg)
+        self._n_pcp(facts)
         try:
-            ret = episode_return(flags, res.outcome, I.result_extras(msg), self.reward_cfg)
+            ret = episode_return(flags, res.outcome, facts, self.reward_cfg)
         except (KeyError, ValueError) as exc:
             self.get_logger().warning(f"episode return not computed: {exc}")
             return
@@ -188,7 +212,11 @@ class PlannerNode(TickFollower, Node):
         self.returns.append(ret)
         out = I.DiagnosticStatus(level=msg.level, name=msg.name, message=msg.message,
                                  hardware_id=msg.hardware_id, values=list(msg.values))
-        out.values = [kv for kv in out.values if kv.key != "return"] + [I.KeyValue(key="return", value=repr(ret))]
+        added = {"return": repr(ret)}
+        if "n_pcp" not in I.result_extras(msg) and "n_pcp" in facts:
+            added["n_pcp"] = facts["n_pcp"]
+        out.values = [kv for kv in out.values if kv.key not in added] + \
+            [I.KeyValue(key=k, value=v) for k, v in added.items()]
         self.pub_result.publish(out)
 
     def _on_odom(self, msg) -> None:
@@ -201,10 +229,10 @@ class PlannerNode(TickFollower, Node):
         self._process()
 
     def _on_objects(self, msg) -> None:
-        _, svs = I.objects_to_svs(msg)
+        ids, svs = I.objects_to_svs(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
         self._check_order(stamp, "objects")
-        self.objects[stamp] = svs
+        self.objects[stamp] = (ids, svs)
         self._bounded(self.objects)
         self._process()
 
@@ -217,19 +245,23 @@ class PlannerNode(TickFollower, Node):
             kind = self._classify(stamp)
             if kind == "wait":
                 continue
-            ego, svs = self.states.pop(stamp), self.objects.pop(stamp)
+            ego_w, (ids, svs) = self.states.pop(stamp), self.objects.pop(stamp)
             if kind == "stale":
                 continue
+            # the policy works in the map's own frame
+            ego, svs = self.frame.states_to_map(ego_w), self.frame.states_to_map(svs)
             if self.gate.new_episode():
                 self.order.reset()
+                goal = self.frame.poses_to_map(np.asarray(self.gate.goal, dtype=float))
                 try:
-                    self.hp.reset(ego, np.asarray(self.gate.goal, dtype=float))
+                    self.hp.reset(ego, goal)
                 except Exception as exc:  # noqa: BLE001 - e.g. no route to an implausible goal
                     self.get_logger().error(f"planner reset failed at {stamp} ns: {type(exc).__name__}: "
                                             f"{one_line(exc)}", throttle_duration_sec=1.0)
                     self.gate._started = None  # retry the reset with the next state
                     continue
                 self.decisions_ep, self.ticks_ep = [], 0
+                self.ev_start, self.ep_goal, self.sv_tracks = ego[:2].copy(), goal, {}
             if self.order.check(stamp) is not None:
                 continue  # a newer stamp was answered meanwhile
             if self.ticks_ep % self.decision_every == 0:
@@ -247,10 +279,12 @@ class PlannerNode(TickFollower, Node):
                 self.decisions += 1
                 self.decisions_ep.append((stamp, bool((info or {}).get("lane_change", False))))
             self.ticks_ep += 1
+            for i, sv in zip(ids, svs):
+                self.sv_tracks.setdefault(i, [sv[:2].copy(), None])[1] = sv[:2].copy()
             self.order.answered(stamp)
-            x_imr = self.x_imr
+            x_imr = self.frame.states_to_world(self.x_imr)
             ref = I.reference_to_odometry(x_imr, stamp)
-            self._answered(stamp, ref, ego)
+            self._answered(stamp, ref, ego_w)
             self.pub_ref.publish(ref)
             if self.markers_on:
                 self.pub_markers.publish(I.reference_markers(x_imr, stamp))

@@ -285,11 +285,15 @@ def svs_to_objects(ids: Sequence[str], states, stamp_ns: int,
 
 
 def objects_to_svs(msg: MultiDOFJointTrajectory, frame_id: str = FRAME_MAP):
-    """MultiDOFJointTrajectory -> (ids, (n, 4) states). Later points (predictions) are ignored."""
+    """MultiDOFJointTrajectory -> (ids, (n, 4) states). Later points (predictions) are ignored.
+    No SVs may come as no joint names with one empty point or with no point at all."""
     _check_frame(msg.header, frame_id, "objects")
     stamp_to_ns(msg.header.stamp)
     if len(msg.points) == 0:
-        raise MessageError("objects: no trajectory point (points[0] holds the current SV states)")
+        if len(msg.joint_names) == 0:
+            return [], np.zeros((0, 4))
+        raise MessageError(f"objects: {len(msg.joint_names)} joint_names but no trajectory point "
+                           "(points[0] holds the current SV states)")
     pt = msg.points[0]
     n = len(msg.joint_names)
     if len(pt.transforms) != n or len(pt.velocities) != n:

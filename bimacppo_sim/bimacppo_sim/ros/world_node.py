@@ -88,6 +88,7 @@ class WorldNode(Node):
                               f"{one_line(exc)}") from None
         self.dropped: dict = {}
         self.world = World(road)
+        self.frame = road.frame        # the map file's pose: the core runs in the map's own frame
         self.dt_ns = int(round(self.world.dt * I.NS_PER_S))
         veh = self.world.cfg.vehicle
         self.brake = float(veh.a_min)
@@ -170,7 +171,7 @@ class WorldNode(Node):
         self._last_cmd = None
         self._resends = 0
         self._delta_hold = 0.0
-        self._goal_msg = I.goal_to_pose(self.world.goal, self.stamp_ns())
+        self._goal_msg = I.goal_to_pose(self.frame.poses_to_world(self.world.goal), self.stamp_ns())
         self.pub_goal.publish(self._goal_msg)
         self._last_goal_pub = time.monotonic()
         self._publish_state()
@@ -189,14 +190,17 @@ class WorldNode(Node):
     def _publish_state(self) -> None:
         stamp = self.stamp_ns()
         w = self.world
-        ego, svs = w.ego, w.sv_states()
+        f = self.frame
+        ego, svs = f.states_to_world(w.ego), f.states_to_world(np.asarray(w.sv_states()).reshape(-1, 4))
         if not self.trajectory or self.trajectory[-1][0] != stamp:
             self.trajectory.append((stamp, ego.copy()))
         self.pub_clock.publish(ClockMsg(clock=I.ns_to_stamp(stamp)))
         self.pub_odom.publish(I.state_to_odometry(ego, stamp))
         self.pub_objects.publish(I.svs_to_objects(w.sv_ids, svs, stamp))
         if self.markers_on:
-            self.pub_markers.publish(I.world_markers(ego, svs, w.goal, w.route, stamp, self.style))
+            route = None if w.route is None else f.poses_to_world(np.asarray(w.route)[:, :3])
+            self.pub_markers.publish(I.world_markers(ego, svs, f.poses_to_world(w.goal), route, stamp,
+                                                     self.style))
         self._last_pub = time.monotonic()
 
     def _step(self, u) -> None:
