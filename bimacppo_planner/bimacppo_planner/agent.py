@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from bimacppo_sim import RoadMap, WorldConfig, load_map
-from bimacppo_sim.world import reference_route
+from bimacppo_sim.world import reference_route, resample_route, route_end
 
 from .policy import CheckpointError, Policy
 from .decision import EnvConfig, WaypointTracker, decode_action, observe
@@ -45,10 +45,86 @@ def env_config_of(policy: Policy) -> EnvConfig:
 
 
 def route_for(road: RoadMap, start: np.ndarray, goal: np.ndarray, world_config: WorldConfig | None = None) -> np.ndarray:
-    """The A* reference waypoint set from a start pose to a goal pose on the planner's own map
-    copy — the same function the world calls at reset, so both get the same waypoints."""
-    return reference_route(road, start[:2], goal[:2], world_config,
-                           start_psi=float(start[2]) if len(start) > 2 else None)
+    """The A* reference waypoint set from a start pose [x, y, psi] to a goal pose on the
+    planner's own map copy: the function the world calls at reset (``reference_route``), so
+    both get the same waypoints, plus two fallbacks for a planner that first sees an episode
+    late (restarted, resynchronised, or its goal delivered after the EV moved on), so that it
+    plans instead of refusing every tick:
+
+    * a start inside the junction (no straight lane under the EV): the route through the
+      junction that passes nearest the EV (heading within 60 deg), from that point on;
+    * a start in a lane that can no longer reach the goal under the no-lane-change zone:
+      a lane change right up to the junction, else from the adjacent lane.
+
+    ValueError (the strict route's) when neither applies."""
+    cfg = world_config or WorldConfig.load()
+    try:
+        return reference_route(road, start[:2], goal[:2], cfg)
+    except ValueError:
+        g = road.locate(float(goal[0]), float(goal[1]))
+        s = road.locate(float(start[0]), float(start[1]))
+        route = None
+        if g is not None and s is None:
+            route = _route_from_junction(road, start[:2], float(start[2]) if len(start) > 2 else None, g, cfg)
+        elif g is not None:
+            pts = _late_route(road, start[:2], s, g[0], route_end(road, g, cfg))
+            route = None if pts is None else resample_route(pts, cfg.waypoint_spacing)
+        if route is None:
+            raise
+        return route
+
+
+def _late_route(road: RoadMap, start_xy, start, goal_lane: str, s_end: float):
+    """A planner that first sees an episode late (restarted, or its goal delivered after
+    the EV moved on) may find the EV in a lane that can no longer reach the goal under the
+    no-lane-change zone. Recover rather than stall: first allow a lane change right up to
+    the junction, then start from the adjacent lane at the same station (the first
+    waypoint is then one lane over, a lane-change length ahead, or at the stop line if that
+    is nearer: the MPC steers across). None if neither reaches."""
+    ln = road.lanes[start[0]]
+    for lid in (start[0], ln.left, ln.right):
+        if lid is None:
+            continue
+        s0 = start[1] if lid == start[0] else min(start[1] + road.cfg.lane_change_length, road.lanes[lid].length)
+        try:
+            pts, _, _ = road.plan_route(lid, s0, goal_lane, s_end, no_lane_change_zone=0.0)
+        except ValueError:
+            continue
+        return pts if lid == start[0] else np.vstack([np.asarray(start_xy, float)[None, :2], pts])
+    return None
+
+
+def _route_from_junction(road: RoadMap, start_xy, start_psi, goal, cfg):
+    """Route for a start inside the junction box: among the routes from each incoming lane's
+    stop line to the goal, the one nearest the start (within a lane width, heading within
+    60 deg when known), from its nearest waypoint on; None if no route passes close."""
+    if road.kind != "four_way" or not road.drivable(float(start_xy[0]), float(start_xy[1])):
+        return None
+    p = np.array([float(start_xy[0]), float(start_xy[1])])
+    s_end = route_end(road, goal, cfg)
+    best = None
+    for lid, ln in road.lanes.items():
+        if ln.kind != "in":
+            continue
+        try:
+            pts, _, _ = road.plan_route(lid, ln.length, goal[0], s_end)
+        except ValueError:
+            continue
+        fine = resample_route(pts, 0.5)
+        d = np.hypot(fine[:, 0] - p[0], fine[:, 1] - p[1])
+        if start_psi is not None:   # a connector crossing this one at the start point heads elsewhere
+            turn = np.abs(np.angle(np.exp(1j * (fine[:, 2] - float(start_psi)))))
+            d = np.where(turn <= math.radians(60.0), d, np.inf)
+        i = int(np.argmin(d))
+        if d[i] <= road.lane_width and (best is None or d[i] < best[0]):
+            best = (float(d[i]), pts, fine[i, :2], 0.5 * i)
+    if best is None:
+        return None
+    _, pts, near, s_near = best
+    # the polyline from the nearest point on (its arc length on the 0.5 m resampling)
+    cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    tail = np.vstack([near[None, :], pts[cum > s_near + 1e-6]])
+    return resample_route(tail, cfg.waypoint_spacing)
 
 
 class HighLevelPlanner:

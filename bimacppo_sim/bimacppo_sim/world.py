@@ -492,97 +492,34 @@ def _eta(d, v, a):
 
 
 def reference_route(road: RoadMap, start_xy, goal_xy, config: WorldConfig | None = None,
-                    with_polyline: bool = False, start_psi: float | None = None):
+                    with_polyline: bool = False):
     """The EV's A* reference waypoint set (M, 3) [x, y, psi] from a start position to a goal
-    position, both on straight lanes: the world computes it at reset and the planner node
+    position, both on straight lanes: the world computes it at reset and the planner
     recomputes it from /ego/odom and /goal_pose, so both must go through this one function.
     The route runs ``route_tail`` m past the goal so that A1 still has waypoints ahead there.
-
-    A start inside the junction happens when a planner (re)starts mid-episode while the EV
-    is crossing: the route is then the one through the junction that passes closest to the
-    start (heading ``start_psi`` breaks ties between crossing connectors), cut there."""
+    A start or goal off the straight lanes, or a start that cannot reach the goal, is a
+    ValueError; a planner that first sees an episode late has its own fallbacks
+    (``bimacppo_planner.agent.route_for``)."""
     cfg = config or WorldConfig.load()
     start = road.locate(float(start_xy[0]), float(start_xy[1]))
     goal = road.locate(float(goal_xy[0]), float(goal_xy[1]))
-    if start is None and goal is not None and not with_polyline:
-        route = _route_from_junction(road, start_xy, start_psi, goal, cfg)
-        if route is not None:
-            return route
     if start is None or goal is None:
         which = "start" if start is None else "goal"
         raise ValueError(f"route {which} ({float((start_xy if start is None else goal_xy)[0]):.2f}, "
                          f"{float((start_xy if start is None else goal_xy)[1]):.2f}) is not on a straight lane "
                          f"of map {road.id!r}")
-    end_s = road.lanes[goal[0]].length
-    s_end = min(goal[1] + cfg.route_tail, end_s)
-    try:
-        pts, conns, _ = road.plan_route(start[0], start[1], goal[0], s_end)
-    except ValueError:
-        if with_polyline:   # the world's own reset: a start that cannot reach its goal is a bug
-            raise
-        pts = _late_route(road, start_xy, start, goal[0], s_end)
-        if pts is None:
-            raise
-        return _resample(pts, cfg.waypoint_spacing)
-    route = _resample(pts, cfg.waypoint_spacing)
+    pts, conns, _ = road.plan_route(start[0], start[1], goal[0], route_end(road, goal, cfg))
+    route = resample_route(pts, cfg.waypoint_spacing)
     return (route, pts, conns) if with_polyline else route
 
 
-def _late_route(road: RoadMap, start_xy, start, goal_lane: str, s_end: float):
-    """A planner that first sees an episode late (restarted, or its goal delivered after
-    the EV moved on) may find the EV in a lane that can no longer reach the goal under the
-    no-lane-change zone. Recover rather than stall: first allow a lane change right up to
-    the junction, then start from the adjacent lane at the same station (the first
-    waypoint is then one lane over, a lane-change length ahead, or at the stop line if that
-    is nearer: the MPC steers across). None if neither reaches."""
-    ln = road.lanes[start[0]]
-    for lid in (start[0], ln.left, ln.right):
-        if lid is None:
-            continue
-        s0 = start[1] if lid == start[0] else min(start[1] + road.cfg.lane_change_length, road.lanes[lid].length)
-        try:
-            pts, _, _ = road.plan_route(lid, s0, goal_lane, s_end, no_lane_change_zone=0.0)
-        except ValueError:
-            continue
-        return pts if lid == start[0] else np.vstack([np.asarray(start_xy, float)[None, :2], pts])
-    return None
+def route_end(road: RoadMap, goal, cfg: WorldConfig) -> float:
+    """Station on the goal's lane (``goal`` = road.locate of the goal) where a route ends:
+    ``route_tail`` past the goal, at most the lane's end."""
+    return min(goal[1] + cfg.route_tail, road.lanes[goal[0]].length)
 
 
-def _route_from_junction(road: RoadMap, start_xy, start_psi, goal, cfg):
-    """Route for a start inside the junction box: among the routes from each incoming lane's
-    stop line to the goal, the one nearest the start (within a lane width, heading within
-    60 deg when known), from its nearest waypoint on; None if no route passes close."""
-    if road.kind != "four_way" or not road.drivable(float(start_xy[0]), float(start_xy[1])):
-        return None
-    p = np.array([float(start_xy[0]), float(start_xy[1])])
-    end_s = road.lanes[goal[0]].length
-    s_end = min(goal[1] + cfg.route_tail, end_s)
-    best = None
-    for lid, ln in road.lanes.items():
-        if ln.kind != "in":
-            continue
-        try:
-            pts, _, _ = road.plan_route(lid, ln.length, goal[0], s_end)
-        except ValueError:
-            continue
-        fine = _resample(pts, 0.5)
-        d = np.hypot(fine[:, 0] - p[0], fine[:, 1] - p[1])
-        if start_psi is not None:   # a connector crossing this one at the start point heads elsewhere
-            turn = np.abs(np.angle(np.exp(1j * (fine[:, 2] - float(start_psi)))))
-            d = np.where(turn <= math.radians(60.0), d, np.inf)
-        i = int(np.argmin(d))
-        if d[i] <= road.lane_width and (best is None or d[i] < best[0]):
-            best = (float(d[i]), pts, fine[i, :2], 0.5 * i)
-    if best is None:
-        return None
-    _, pts, near, s_near = best
-    # the polyline from the nearest point on (its arc length on the 0.5 m resampling)
-    cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
-    tail = np.vstack([near[None, :], pts[cum > s_near + 1e-6]])
-    return _resample(tail, cfg.waypoint_spacing)
-
-
-def _resample(pts, spacing):
+def resample_route(pts, spacing):
     """Waypoints every ``spacing`` m along the polyline, as (M, 3) [x, y, psi]."""
     pts = np.asarray(pts, float)
     seg = np.hypot(*np.diff(pts, axis=0).T)
