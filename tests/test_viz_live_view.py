@@ -152,14 +152,16 @@ def test_live_view_serves_the_graph_topics(node):
                                                             dt=0.1))
             rclpy.spin_once(node, timeout_sec=0.0)
 
-        want = {S.CH_VEHICLES, S.CH_GOAL, S.CH_REFERENCE, S.CH_TF, S.CH_EGO, S.CH_COMMAND}
+        want = {S.CH_ROAD, S.CH_VEHICLES, S.CH_GOAL, S.CH_REFERENCE, S.CH_TF, S.CH_EGO, S.CH_COMMAND}
         got = _collect(client, subs, want, PROC_TIMEOUT, tick)
         client.close()
     finally:
         rc, out = _stop(proc)
     assert rc == 0 and "Traceback" not in out, out
     assert f"ws://127.0.0.1:{port}" in out
-    # what arrived is what was published, through the converters
+    # what arrived is what was published, through the converters; the road is the default map's
+    from bimacppo_sim import load_map
+    assert len(got[S.CH_ROAD][0].entities[0].lines) == len(load_map("dual_lane_4way").lanes)
     goal = got[S.CH_GOAL][0].entities[0].arrows[0].pose.position
     assert (goal.x, goal.y) == (-60.0, 1.75)
     paired = [u for u in got[S.CH_VEHICLES] if len(u.entities) == 2]
@@ -185,9 +187,11 @@ def test_port_in_use_and_bad_parameters_are_one_line_errors():
     assert rc == 2 and "Traceback" not in out, out
     errors = [ln for ln in out.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and f"127.0.0.1:{port}" in errors[0] and "in use" in errors[0], out
-    proc = _start("-m", "bimacppo_viz.ros.live_view", "--ros-args", "-p", "port:=70000")
-    rc, out = _stop_when_done(proc)
-    assert rc == 2 and "Traceback" not in out and "error:" in out and "port" in out, out
+    for param, word in (("port:=70000", "port"), ("map_id:=nowhere", "map_id"), ("host:=", "host")):
+        proc = _start("-m", "bimacppo_viz.ros.live_view", "--ros-args", "-p", param)
+        rc, out = _stop_when_done(proc)
+        errors = [ln for ln in out.splitlines() if ln.startswith("error:")]
+        assert rc == 2 and "Traceback" not in out and len(errors) == 1 and word in errors[0], out
 
 
 def _stop_when_done(proc):

@@ -86,6 +86,22 @@ def test_route_goal_reference_and_transforms():
     assert (tf.timestamp.seconds, tf.timestamp.nanos) == (2, 1)
 
 
+def test_road_draws_every_lane_connectors_fainter():
+    from bimacppo_sim import load_map
+    road = load_map("dual_lane_4way")
+    lanes = [(ln.kind, ln.points) for ln in road.lanes.values()]
+    d = decode(S.road_update(lanes))
+    assert [e.id for e in d.entities] == ["road"]
+    lines = d.entities[0].lines
+    assert len(lines) == len(lanes)
+    for line, (kind, pts) in zip(lines, lanes):
+        assert np.array([(p.x, p.y) for p in line.points]) == pytest.approx(np.asarray(pts)[:, :2])
+        assert line.color.a == pytest.approx((S.CONNECTOR_RGBA if kind == "conn" else S.LANE_RGBA)[3])
+    assert {ln.color.a for ln in lines} == {S.CONNECTOR_RGBA[3], S.LANE_RGBA[3]}
+    with pytest.raises(ValueError, match="lane 1"):
+        S.road_update([("in", [[0, 0], [1, 1]]), ("in", [[0, float("nan")], [1, 1]])])
+
+
 def test_json_messages_for_the_plots():
     assert S.state_json([1, 2, 3, 0.5], 1_500_000_000) == {"t": 1.5, "x": 1.0, "y": 2.0, "v": 3.0, "psi": 0.5}
     c = S.command_json([0.8, -0.05], [[0.8, -0.05], [0.6, -0.02], [0.1, 0.0]], 200_000_000)
@@ -135,6 +151,8 @@ def test_live_scene_pairs_ev_and_svs_by_stamp(tmp_path):
     sc.on_route([[0.0, -40.0], [0.0, 0.0]], 100)
     sc.on_command([1.0, 0.0], [[1.0, 0.0], [0.5, 0.01]], 100)
     sc.on_result({"outcome": "success", "stamp_ns": "300"}, 300)
+    sc.on_road([("in", [[0.0, -60.0], [0.0, -15.0]]), ("conn", [[0.0, -15.0], [-15.0, 0.0]])])
+    sc.resend_latched()                                 # map and goal again, for a later client
     writer.close()
     got = _read_mcap(path)
     vehicles = got[S.CH_VEHICLES]
@@ -146,8 +164,11 @@ def test_live_scene_pairs_ev_and_svs_by_stamp(tmp_path):
     assert frames.count("base_link") == 3 and frames.count("x_imr") == 1
     assert got[S.CH_COMMAND][0]["horizon_a"] == [1.0, 0.5]
     assert got[S.CH_EPISODE][0]["outcome"] == "success"
-    assert len(got[S.CH_GOAL]) == len(got[S.CH_ROUTE]) == len(got[S.CH_REFERENCE]) == 1
+    assert len(got[S.CH_ROUTE]) == len(got[S.CH_REFERENCE]) == 1
+    assert len(got[S.CH_GOAL]) == 2 and got[S.CH_GOAL][0] == got[S.CH_GOAL][1]
     assert sc.logged[S.CH_VEHICLES] == 3
+    assert len(got[S.CH_ROAD]) == 2 and got[S.CH_ROAD][0] == got[S.CH_ROAD][1]
+    assert len(got[S.CH_ROAD][0].entities[0].lines) == 2
 
 
 def test_shipped_layout_opens_the_scene_channels_and_plots():

@@ -7,9 +7,9 @@ imports no rclpy: it is unit-testable anywhere ``foxglove-sdk`` is installed.
 
 Channels (the names the shipped layout opens):
 
-* 3D scene, ``foxglove.SceneUpdate`` (protobuf): ``/viz/vehicles`` (EV + SVs, every update
-  replaces the whole set so vanished SVs disappear), ``/viz/route``, ``/viz/reference``
-  (x_IMR), ``/viz/goal``;
+* 3D scene, ``foxglove.SceneUpdate`` (protobuf): ``/viz/road`` (lane centrelines of the map),
+  ``/viz/vehicles`` (EV + SVs, every update replaces the whole set so vanished SVs disappear),
+  ``/viz/route``, ``/viz/reference`` (x_IMR), ``/viz/goal``;
 * ``/viz/tf``, ``foxglove.FrameTransforms``: ``map -> base_link`` (EV) and ``map -> x_imr``,
   so the 3D panel can follow the EV;
 * plots, JSON: ``/viz/ego`` and ``/viz/reference_state`` (``t, x, y, v, psi``),
@@ -33,6 +33,7 @@ FRAME_MAP = "map"
 FRAME_EGO = "base_link"
 FRAME_REFERENCE = "x_imr"
 
+CH_ROAD = "/viz/road"
 CH_VEHICLES = "/viz/vehicles"
 CH_ROUTE = "/viz/route"
 CH_REFERENCE = "/viz/reference"
@@ -42,10 +43,11 @@ CH_EGO = "/viz/ego"
 CH_REFERENCE_STATE = "/viz/reference_state"
 CH_COMMAND = "/viz/command"
 CH_EPISODE = "/viz/episode"
-SCENE_CHANNELS = (CH_VEHICLES, CH_ROUTE, CH_REFERENCE, CH_GOAL)
+SCENE_CHANNELS = (CH_ROAD, CH_VEHICLES, CH_ROUTE, CH_REFERENCE, CH_GOAL)
 JSON_CHANNELS = (CH_EGO, CH_REFERENCE_STATE, CH_COMMAND, CH_EPISODE)
 CHANNELS = (*SCENE_CHANNELS, CH_TF, *JSON_CHANNELS)
 
+ENTITY_ROAD = "road"
 ENTITY_EGO = "ego"
 ENTITY_SV_PREFIX = "sv/"
 ENTITY_ROUTE = "route"
@@ -54,6 +56,9 @@ ENTITY_GOAL = "goal"
 
 ARROW_LENGTH_M = 2.0      # x_IMR and goal arrows: heading only, drawn at one readable size
 LABEL_SIZE_M = 1.2        # text labels (SV ids, EV speed) in scene metres
+LANE_RGBA = (1.0, 1.0, 1.0, 0.6)          # straight lanes' centrelines
+CONNECTOR_RGBA = (1.0, 1.0, 1.0, 0.25)    # the junction's connector lanes
+LANE_LINE_WIDTH_M = 0.1
 
 _STATE_SCHEMA = {
     "type": "object",
@@ -150,15 +155,32 @@ def vehicles_update(ego, sv_ids: Sequence[str], sv_states, stamp_ns: int, style)
                           entities=entities)
 
 
-def route_update(points, stamp_ns: int, style) -> fm.SceneUpdate:
-    """The EV's reference route (``(M, >= 2)`` array, x and y used) as one line strip."""
+def _polyline(points, what: str) -> np.ndarray:
     pts = np.asarray(points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] < 2 or len(pts) < 2 or not np.all(np.isfinite(pts[:, :2])):
-        raise ValueError(f"route: expected >= 2 finite points (M, 2), got shape {pts.shape}")
-    line = fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=_pose(0.0, 0.0, 0.0, 0.0),
-                            thickness=float(style.line_width), scale_invariant=False,
-                            points=[fm.Point3(x=float(p[0]), y=float(p[1]), z=0.05) for p in pts],
-                            color=_color(style.route_rgba))
+        raise ValueError(f"{what}: expected >= 2 finite points (M, 2), got shape {pts.shape}")
+    return pts
+
+
+def _line(pts, z: float, width: float, rgba) -> fm.LinePrimitive:
+    return fm.LinePrimitive(type=fm.LinePrimitiveLineType.LineStrip, pose=_pose(0.0, 0.0, 0.0, 0.0),
+                            thickness=float(width), scale_invariant=False,
+                            points=[fm.Point3(x=float(p[0]), y=float(p[1]), z=z) for p in pts],
+                            color=_color(rgba))
+
+
+def road_update(lanes: Sequence[tuple]) -> fm.SceneUpdate:
+    """The map's lanes ``[(kind, (N, 2) centreline), ...]`` as line strips: connectors (kind
+    ``conn``) fainter than the straight lanes. Static: stamped 0."""
+    lines = [_line(_polyline(pts, f"lane {i}"), 0.02, LANE_LINE_WIDTH_M,
+                   CONNECTOR_RGBA if kind == "conn" else LANE_RGBA) for i, (kind, pts) in enumerate(lanes)]
+    return fm.SceneUpdate(entities=[fm.SceneEntity(timestamp=timestamp(0), frame_id=FRAME_MAP, id=ENTITY_ROAD,
+                                                   lines=lines)])
+
+
+def route_update(points, stamp_ns: int, style) -> fm.SceneUpdate:
+    """The EV's reference route (``(M, >= 2)`` array, x and y used) as one line strip."""
+    line = _line(_polyline(points, "route"), 0.05, style.line_width, style.route_rgba)
     return fm.SceneUpdate(entities=[fm.SceneEntity(timestamp=timestamp(stamp_ns), frame_id=FRAME_MAP,
                                                    id=ENTITY_ROUTE, lines=[line])])
 
@@ -234,6 +256,7 @@ class LiveScene:
         self._ego: Optional[tuple] = None        # (stamp, state)
         self._objects: Optional[tuple] = None    # (stamp, ids, states)
         self._drawn: Optional[tuple] = None      # (stamp, with SVs) of the vehicles last drawn
+        self._latched: dict = {}                 # channel -> its last message, for later clients
         self.logged = {name: 0 for name in CHANNELS}
 
     def _log(self, name: str, msg) -> None:
@@ -266,13 +289,27 @@ class LiveScene:
         self._objects = (int(stamp_ns), list(ids), np.asarray(states, dtype=float).reshape(-1, 4))
         self._vehicles()
 
+    def _latch(self, name: str, msg) -> None:
+        self._latched[name] = msg
+        self._log(name, msg)
+
+    def resend_latched(self) -> None:
+        """Log the map and the current goal again. A Foxglove server forwards a message only to
+        the clients subscribed at that moment, and both are sent once (the map at start, the
+        goal once per episode), so the node calls this periodically for clients that join later."""
+        for name, msg in self._latched.items():
+            self._log(name, msg)
+
+    def on_road(self, lanes: Sequence[tuple]) -> None:
+        self._latch(CH_ROAD, road_update(lanes))
+
     def on_reference(self, x_imr, stamp_ns: int) -> None:
         self._log(CH_REFERENCE, reference_update(x_imr, stamp_ns, self.style))
         self._log(CH_REFERENCE_STATE, state_json(x_imr, stamp_ns))
         self._log(CH_TF, fm.FrameTransforms(transforms=[transform(FRAME_REFERENCE, x_imr, stamp_ns)]))
 
     def on_goal(self, goal, stamp_ns: int) -> None:
-        self._log(CH_GOAL, goal_update(goal, stamp_ns, self.style))
+        self._latch(CH_GOAL, goal_update(goal, stamp_ns, self.style))
 
     def on_route(self, points, stamp_ns: int) -> None:
         self._log(CH_ROUTE, route_update(points, stamp_ns, self.style))

@@ -75,8 +75,8 @@ def run(args) -> int:
         nodes += [world, planner, ctrl, cur]
         if args.live_view is not False:   # the flag alone: the node's default port
             from bimacppo_viz.ros.live_view import LiveViewNode
-            nodes.append(LiveViewNode(parameter_overrides=[] if args.live_view is None else
-                                      [P("port", value=args.live_view)]))
+            nodes.append(LiveViewNode(parameter_overrides=[P("map_id", value=args.map)] + (
+                [] if args.live_view is None else [P("port", value=args.live_view)])))
         for n in nodes:
             ex.add_node(n)
         if rec is not None:

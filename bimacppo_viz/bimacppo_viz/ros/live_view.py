@@ -1,6 +1,6 @@
 """live_view: the running graph on a Foxglove WebSocket server (EV, SVs, route, x_IMR, goal, commands).
 
-    ros2 run bimacppo_viz live_view [--ros-args -p port:=8765 -p host:=127.0.0.1]
+    ros2 run bimacppo_viz live_view [--ros-args -p port:=8765 -p host:=127.0.0.1 -p map_id:=dual_lane_4way]
     bimacppo-graph --live-view            # the same node inside the one-process graph
 
 Open ``ws://HOST:PORT`` in Foxglove and import the layout ``share/bimacppo_viz/layouts/
@@ -17,6 +17,7 @@ from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
 from bimacppo_sim.config import WorldConfig
+from bimacppo_sim.road import available_maps, load_map
 from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import ConfigError, guarded, one_line, run_single
 
@@ -28,6 +29,7 @@ NODE_NAME = "live_view"
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765        # Foxglove's default WebSocket port
 SERVER_NAME = "bimacppo"
+LATCHED_RESEND_S = 1.0     # map and goal are logged again this often: a client joining later gets them
 
 # parameter -> the contract topic it defaults to (a source with other names is remapped here)
 TOPIC_PARAMETERS = {
@@ -49,6 +51,8 @@ class LiveViewNode(Node):
         self.declare_parameter("port", DEFAULT_PORT, ParameterDescriptor(
             description="WebSocket port (0 = any free port, logged at start)",
             integer_range=[IntegerRange(from_value=0, to_value=65535, step=1)]))
+        self.declare_parameter("map_id", "dual_lane_4way", ParameterDescriptor(
+            description=f"map drawn under the scene: {available_maps()} or a YAML path; '' = none"))
         for name, topic in TOPIC_PARAMETERS.items():
             self.declare_parameter(name, topic, ParameterDescriptor(description=f"topic (default {topic})"))
         g = lambda n: self.get_parameter(n).value  # noqa: E731
@@ -56,6 +60,14 @@ class LiveViewNode(Node):
         if not host:
             raise ConfigError(f"{NODE_NAME}: parameter host must not be empty")
         topics = {n: str(g(n)) for n in TOPIC_PARAMETERS}
+        map_id = str(g("map_id"))
+        road = None
+        if map_id:
+            try:
+                road = load_map(map_id)
+            except Exception as exc:  # noqa: BLE001 - YAML syntax, missing keys, wrong types: all user errors
+                raise ConfigError(f"{NODE_NAME}: parameter map_id {map_id!r}: {type(exc).__name__}: "
+                                  f"{one_line(exc)}") from None
         self.errors: dict = {}
 
         import foxglove
@@ -68,6 +80,9 @@ class LiveViewNode(Node):
             raise ConfigError(f"{NODE_NAME}: cannot serve on {host}:{port}: "
                               f"{one_line(exc).replace('FoxgloveError: ', '')}") from None
         self.url = f"ws://{host}:{self.server.port}"
+        if road is not None:
+            self.scene.on_road([(ln.kind, ln.points) for ln in road.lanes.values()])
+        self.create_timer(LATCHED_RESEND_S, self.scene.resend_latched)
 
         def sub(param, msg_type, qos, fn):
             return self.create_subscription(msg_type, topics[param], guarded(self, topics[param], fn, self.errors), qos)
