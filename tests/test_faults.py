@@ -535,7 +535,9 @@ def test_command_stamped_in_the_future_never_drives_the_realtime_world(realtime)
     w.spin(1.0)
     ctrl = realtime["procs"]["controller"]
     ctrl.send_signal(signal.SIGSTOP)
-    w.spin(0.3)                       # commands already sent are applied or dropped by now
+    # the controller's last command stays in force for command_timeout_s (3 ticks): wait until
+    # the world brakes on its own, then inject
+    w.spin(10.0, lambda: len(w.speeds) >= 2 and w.speeds[-1][2] < w.speeds[-2][2] - 0.05)
     v0 = w.speeds[-1][2]
     n0 = len(w.speeds)
     far = (2 ** 31 - 1) * I.NS_PER_S
