@@ -9,12 +9,13 @@ from bimacppo_mpc import _kernels as K
 CFG = MPCConfig.load()
 ONE_START = CFG.replace(fast={"steer_bound_start": False})
 
-# The car 2 m before and 1.8 m left of a reference point it cannot stop at, steering held
-# right: braking straight and turning hard right are both strict local minima, and the
-# warm-startless first start lands in the costlier one (a closed-loop benchmark problem).
-X0 = np.array([9.4, 1.757, 5.646, -0.476])
+# The car 2 m before and 0.3 m left of a reference point it passes at 6.3 m/s, heading 0.27 rad
+# left of it: easing through and turning right as fast as the steering rate allows are both
+# strict local minima, and the warm-startless first start lands in the costlier one (a
+# closed-loop benchmark problem).
+X0 = np.array([9.416, 0.314, 6.331, 0.272])
 REF = np.array([11.5, 0.0, 8.0, 0.0])
-UPREV = np.array([0.536, -0.6])
+UPREV = np.array([-1.912, 0.12])
 
 
 def test_second_start_finds_the_cheaper_minimum_on_a_nonconvex_problem():

@@ -2,9 +2,10 @@
 
 The problem is eq. (32)-(33) in single shooting: the decision vector is
 z = [a_0, delta_0, a_1, delta_1, ...] (n = 2N) and the states are functions of z.
-Because v_k = v_0 + dt * sum_{j<k} a_j, the speed bounds are *linear* in z, so every
-constraint is linear and the feasible set is a fixed polytope. The kernel runs a
-line-search SQP on it:
+Because v_k = v_0 + dt * sum_{j<k} a_j, the speed bounds are *linear* in z, and so are
+the optional rate bounds (steering rate over the horizon, jerk on the first move, as boxes
+and difference rows), so every constraint is linear and each problem's feasible set is a
+polytope. The kernel runs a line-search SQP on it:
 
 * derivatives of the cost by forward sensitivities S_k = dx_k/dz, exact Hessian by a
   second-order adjoint (costates lambda_k times the curvature of the Euler step), or the
@@ -44,7 +45,8 @@ ST_NONFINITE_RESULT = 8
 P_L, P_DT, P_AMIN, P_AMAX, P_DMIN, P_DMAX, P_VMIN, P_VMAX = 0, 1, 2, 3, 4, 5, 6, 7
 P_QX, P_QU, P_QDU = 8, 12, 14
 P_BRAKE, P_RELAX, P_TOL, P_EXACT, P_STEER_START, P_STEER_GATE = 16, 17, 18, 19, 20, 21
-P_SIZE = 22
+P_STEER_RATE, P_JERK = 22, 23     # rate bounds [rad/s], [m/s^3]; 0 = no bound
+P_SIZE = 24
 
 # numerical constants of the linear algebra (not tuning knobs: scale-free guards)
 _EPS_PIVOT = 1e-12       # relative pivot below which a working-set row is dependent
@@ -147,24 +149,79 @@ def speed_tube(v0, N, P, vlo, vhi):
 
 
 @njit(cache=True)
-def project(z, v0, vlo, vhi, P):
-    """Make z feasible in place: box clip and a forward clamp of a_k into the speed tube."""
+def input_boxes(x0, uprev, vlo, vhi, P, zlo, zhi):
+    """Per-variable bounds zlo <= z <= zhi: the input boxes, tightened on the first move by the
+    rate bounds around u_prev (clipped into the box first).
+
+    Steering: delta_0 within steer_rate * dt of delta_prev, never empty (holding is allowed).
+    Jerk: a_0 within jerk * dt of a_prev; where that interval misses the accelerations that keep
+    v_1 in the speed tube, the nearer end is moved onto the tube's interval (the speed bound
+    wins, docs/mpc.md "Rate bounds"), so the polytope is never empty."""
+    N = vlo.size
+    dt = P[P_DT]
+    for k in range(N):
+        zlo[2 * k] = P[P_AMIN]
+        zhi[2 * k] = P[P_AMAX]
+        zlo[2 * k + 1] = P[P_DMIN]
+        zhi[2 * k + 1] = P[P_DMAX]
+    rate = P[P_STEER_RATE] * dt
+    if rate > 0.0:
+        dp = min(max(uprev[1], P[P_DMIN]), P[P_DMAX])
+        zlo[1] = max(P[P_DMIN], dp - rate)
+        zhi[1] = min(P[P_DMAX], dp + rate)
+    jump = P[P_JERK] * dt
+    if jump > 0.0:
+        ap = min(max(uprev[0], P[P_AMIN]), P[P_AMAX])
+        lo = max(P[P_AMIN], ap - jump)
+        hi = min(P[P_AMAX], ap + jump)
+        # the accelerations keeping v_1 in the tube (the interval project() clamps a_0 into)
+        tlo = max(P[P_AMIN], (vlo[0] - x0[2]) / dt)
+        thi = min(P[P_AMAX], (vhi[0] - x0[2]) / dt)
+        if hi < tlo:
+            hi = tlo
+        if lo > thi:
+            lo = thi
+        zlo[0] = lo
+        zhi[0] = hi
+
+
+@njit(cache=True)
+def n_rows(N, P):
+    """Rows of G z <= h: input boxes (2n), speed tube (2N), steering rate (2(N-1) if bounded)."""
+    m = 6 * N
+    if P[P_STEER_RATE] > 0.0:
+        m += 2 * (N - 1)
+    return m
+
+
+@njit(cache=True)
+def project(z, v0, vlo, vhi, zlo, zhi, P):
+    """Make z feasible in place, forward in k: delta_k into its box and within the steering
+    rate of delta_{k-1}, a_k into its box and the speed tube. Each interval is non-empty
+    given the previous steps, so the result is feasible."""
     N = z.size // 2
     dt = P[P_DT]
+    rate = P[P_STEER_RATE] * dt
     v = v0
     for k in range(N):
-        d = z[2 * k + 1]
-        z[2 * k + 1] = min(max(d, P[P_DMIN]), P[P_DMAX])
-        lo = max(P[P_AMIN], (vlo[k] - v) / dt)
-        hi = min(P[P_AMAX], (vhi[k] - v) / dt)
+        lo = zlo[2 * k + 1]
+        hi = zhi[2 * k + 1]
+        if rate > 0.0 and k > 0:
+            dprev = z[2 * k - 1]
+            lo = max(lo, dprev - rate)
+            hi = min(hi, dprev + rate)
+        z[2 * k + 1] = min(max(z[2 * k + 1], lo), hi)
+        lo = max(zlo[2 * k], (vlo[k] - v) / dt)
+        hi = min(zhi[2 * k], (vhi[k] - v) / dt)
         a = min(max(z[2 * k], lo), hi)
         z[2 * k] = a
         v = v + dt * a
 
 
 @njit(cache=True)
-def build_constraints(v0, vlo, vhi, P, G, h):
-    """All constraints as G z <= h (rows: a/delta upper, a/delta lower, v upper, v lower)."""
+def build_constraints(v0, vlo, vhi, zlo, zhi, P, G, h):
+    """All constraints as G z <= h (rows: a/delta upper, a/delta lower, v upper, v lower, then,
+    with a steering rate bound, delta_k - delta_{k-1} <= rate*dt and its mirror, k = 1..N-1)."""
     N = vlo.size
     n = 2 * N
     dt = P[P_DT]
@@ -172,18 +229,24 @@ def build_constraints(v0, vlo, vhi, P, G, h):
     for j in range(n):
         G[j, j] = 1.0
         G[n + j, j] = -1.0
-        if j % 2 == 0:
-            h[j] = P[P_AMAX]
-            h[n + j] = -P[P_AMIN]
-        else:
-            h[j] = P[P_DMAX]
-            h[n + j] = -P[P_DMIN]
+        h[j] = zhi[j]
+        h[n + j] = -zlo[j]
     for k in range(N):
         for j in range(k + 1):
             G[2 * n + k, 2 * j] = dt
             G[2 * n + N + k, 2 * j] = -dt
         h[2 * n + k] = vhi[k] - v0
         h[2 * n + N + k] = v0 - vlo[k]
+    if h.size > 6 * N:
+        r0 = 6 * N
+        rate = P[P_STEER_RATE] * dt
+        for k in range(1, N):
+            G[r0 + k - 1, 2 * k - 1] = -1.0
+            G[r0 + k - 1, 2 * k + 1] = 1.0
+            G[r0 + N - 1 + k - 1, 2 * k - 1] = 1.0
+            G[r0 + N - 1 + k - 1, 2 * k + 1] = -1.0
+            h[r0 + k - 1] = rate
+            h[r0 + N - 1 + k - 1] = rate
 
 
 @njit(cache=True)
@@ -203,6 +266,11 @@ def slacks(z, h, dt, b):
             lo -= -dt * z[2 * j]
         b[2 * n + k] = hi
         b[2 * n + N + k] = lo
+    if h.size > 6 * N:
+        r0 = 6 * N
+        for k in range(1, N):
+            b[r0 + k - 1] = h[r0 + k - 1] + z[2 * k - 1] - z[2 * k + 1]
+            b[r0 + N - 1 + k - 1] = h[r0 + N - 1 + k - 1] - z[2 * k - 1] + z[2 * k + 1]
     return b
 
 
@@ -514,6 +582,11 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws):
                 acc += dt * s[2 * k]
                 Gs[2 * n + k] = acc
                 Gs[2 * n + N + k] = -acc
+            if m > 6 * N:
+                for k in range(1, N):
+                    t = s[2 * k + 1] - s[2 * k - 1]
+                    Gs[6 * N + k - 1] = t
+                    Gs[7 * N - 1 + k - 1] = -t
             for c in range(m):
                 if inW[c]:
                     Gs[c] = 0.0
@@ -628,10 +701,10 @@ def convexify(H, Lh, G, b, H0, dmax, Hgn):
 
 
 @njit(cache=True)
-def sqp_workspace(N):
+def sqp_workspace(N, P):
     """The arrays of one SQP (allocated once per problem and shared by its starts)."""
     n = 2 * N
-    m = 2 * n + 2 * N
+    m = n_rows(N, P)
     return (np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4)), np.empty(n), np.empty((n, n)),
             np.zeros((n, n)), np.empty((m, n)), np.empty(m), np.empty(m), np.empty(n), np.empty(n),
             np.empty(n, dtype=np.int64), np.zeros(m, dtype=np.bool_), np.empty(n), np.empty((n, n)),
@@ -640,23 +713,23 @@ def sqp_workspace(N):
 
 
 @njit(cache=True)
-def sqp(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X):
+def sqp(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X):
     """Solve one problem from the feasible initial guess z (overwritten). Returns (status, cost, iters)."""
-    wk = sqp_workspace(z.size // 2)
-    build_constraints(x0[2], vlo, vhi, P, wk[5], wk[6])
-    return sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X, wk)
+    wk = sqp_workspace(z.size // 2, P)
+    build_constraints(x0[2], vlo, vhi, zlo, zhi, P, wk[5], wk[6])
+    return sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk)
 
 
 @njit(cache=True)
-def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X, wk):
+def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk):
     """sqp() on the workspace wk of sqp_workspace, whose G, h already hold build_constraints."""
     N = z.size // 2
     n = 2 * N
-    m = 2 * n + 2 * N
+    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn) = wk
+    m = h.size
     exact = P[P_EXACT] > 0.5
     tol = P[P_TOL]
     dt = P[P_DT]
-    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn) = wk
     slacks(z, h, dt, b)
     nW = 0
     for c in range(m):
@@ -693,7 +766,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X, wk):
         while alpha >= _MIN_STEP:
             for i in range(n):
                 zt[i] = z[i] + alpha * p[i]
-            project(zt, x0[2], vlo, vhi, P)
+            project(zt, x0[2], vlo, vhi, zlo, zhi, P)
             rollout(x0, zt, P, Xt)
             Jt = cost_of(Xt, zt, xref, uprev, P)
             if Jt <= J + _ARMIJO * alpha * gp:
@@ -715,7 +788,8 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X, wk):
 
 @njit(cache=True)
 def fallback(x0, uprev, P, u):
-    """Brake within bounds, hold (clipped) steering: the safe command of every fault."""
+    """Brake within bounds, hold (clipped) steering: the safe command of every fault. It keeps
+    the steering rate bound (holding) but not the jerk bound: a fault brakes at once."""
     a = max(P[P_AMIN], P[P_BRAKE])
     v0 = x0[2]
     if math.isfinite(v0) and v0 >= P[P_VMIN]:
@@ -729,7 +803,7 @@ def fallback(x0, uprev, P, u):
 
 
 @njit(cache=True)
-def initial_guess(x0, xref, uprev, warm, has_warm, guesses, P, vlo, vhi, z, X):
+def initial_guess(x0, xref, uprev, warm, has_warm, guesses, P, vlo, vhi, zlo, zhi, z, X):
     """Cheapest projected candidate among the enabled guesses (config.INITIAL_GUESSES order)."""
     N = z.size // 2
     n = 2 * N
@@ -762,7 +836,7 @@ def initial_guess(x0, xref, uprev, warm, has_warm, guesses, P, vlo, vhi, z, X):
             for k in range(N):
                 zc[2 * k] = acc
                 zc[2 * k + 1] = 0.0
-        project(zc, x0[2], vlo, vhi, P)
+        project(zc, x0[2], vlo, vhi, zlo, zhi, P)
         rollout(x0, zc, P, X)
         Jc = cost_of(X, zc, xref, uprev, P)
         if Jc < best:
@@ -770,12 +844,13 @@ def initial_guess(x0, xref, uprev, warm, has_warm, guesses, P, vlo, vhi, z, X):
             z[:] = zc
     if best == np.inf:
         z[:] = 0.0
-        project(z, x0[2], vlo, vhi, P)
+        project(z, x0[2], vlo, vhi, zlo, zhi, P)
 
 
 @njit(cache=True)
-def prepare(x0, xref, uprev, P, xr, vlo, vhi):
-    """Input checks and heading unwrapping shared by both solvers; returns a status code."""
+def prepare(x0, xref, uprev, P, xr, vlo, vhi, zlo, zhi):
+    """Input checks, heading unwrapping, speed tube and input boxes (``input_boxes``) shared by
+    both solvers; returns a status code."""
     for i in range(4):
         if not math.isfinite(x0[i]):
             return ST_NONFINITE_STATE
@@ -792,14 +867,16 @@ def prepare(x0, xref, uprev, P, xr, vlo, vhi):
     N = vlo.size
     if not speed_tube(x0[2], N, P, vlo, vhi):
         return ST_INFEASIBLE
+    input_boxes(x0, uprev, vlo, vhi, P, zlo, zhi)
     return ST_OK
 
 
 @njit(cache=True)
-def steer_bound_start(x0, xref, uprev, z_from, P, vlo, vhi, z, X):
+def steer_bound_start(x0, xref, uprev, z_from, P, vlo, vhi, zlo, zhi, z, X):
     """The second start: the accelerations of z_from with the steering held at whichever
-    bound (left or right) costs less after projection. It lies in the basin of the
-    solutions that turn as hard as allowed, which a chain warm-started from its own
+    bound (left or right) costs less after projection (with a steering rate bound, the
+    projection turns that into a ramp to the bound as fast as allowed). It lies in the basin
+    of the solutions that turn as hard as allowed, which a chain warm-started from its own
     smooth plans rarely reaches (docs/mpc.md, "Two starts")."""
     N = z.size // 2
     best = np.inf
@@ -809,7 +886,7 @@ def steer_bound_start(x0, xref, uprev, z_from, P, vlo, vhi, z, X):
         for k in range(N):
             zc[2 * k] = z_from[2 * k]
             zc[2 * k + 1] = dval
-        project(zc, x0[2], vlo, vhi, P)
+        project(zc, x0[2], vlo, vhi, zlo, zhi, P)
         rollout(x0, zc, P, X)
         Jc = cost_of(X, zc, xref, uprev, P)
         if Jc < best:
@@ -819,15 +896,21 @@ def steer_bound_start(x0, xref, uprev, z_from, P, vlo, vhi, z, X):
 
 
 @njit(cache=True)
-def second_start_pays(z, X, xref, new_ref, P):
+def second_start_pays(z, X, xref, new_ref, zlo, zhi, P):
     """The gate of the second start (constants _GATE_*): True when the first solution z
-    (states X) keeps the steering on a bound over a large share of the horizon and either the
-    reference is new or the predicted path passes the reference point early."""
+    (states X) keeps the steering saturated over a large share of the horizon and either the
+    reference is new or the predicted path passes the reference point early. A step is
+    saturated when delta_k is on its bound (zlo/zhi) or, with a steering rate bound, moves
+    from delta_{k-1} at the full rate: the turn as hard as allowed."""
     N = z.size // 2
+    rate = P[P_STEER_RATE] * P[P_DT]
     on = 0
     for k in range(N):
         d = z[2 * k + 1]
-        if d >= P[P_DMAX] - _STEER_ON_BOUND or d <= P[P_DMIN] + _STEER_ON_BOUND:
+        sat = d >= zhi[2 * k + 1] - _STEER_ON_BOUND or d <= zlo[2 * k + 1] + _STEER_ON_BOUND
+        if rate > 0.0 and k > 0 and abs(d - z[2 * k - 1]) >= rate - _STEER_ON_BOUND:
+            sat = True
+        if sat:
             on += 1
     if on * _GATE_SAT_DEN < _GATE_SAT_NUM * N:
         return False
@@ -860,8 +943,10 @@ def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter
     xr = np.empty(4)
     vlo = np.empty(N)
     vhi = np.empty(N)
+    zlo = np.empty(n)
+    zhi = np.empty(n)
     z = np.empty(n)
-    st = prepare(x0, Xref[bi], uprev, P, xr, vlo, vhi)
+    st = prepare(x0, Xref[bi], uprev, P, xr, vlo, vhi, zlo, zhi)
     new_ref = not has_warm[bi]
     for i in range(4):
         if Xref[bi, i] != Rprev[bi, i]:
@@ -872,22 +957,22 @@ def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter
     starts[bi] = 0
     if st == ST_OK:
         starts[bi] = 1
-        initial_guess(x0, xr, uprev, Uwarm[bi], has_warm[bi], guesses, P, vlo, vhi, z, X)
-        wk = sqp_workspace(N)
-        build_constraints(x0[2], vlo, vhi, P, wk[5], wk[6])
-        st, J, it = sqp_ws(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, X, wk)
+        initial_guess(x0, xr, uprev, Uwarm[bi], has_warm[bi], guesses, P, vlo, vhi, zlo, zhi, z, X)
+        wk = sqp_workspace(N, P)
+        build_constraints(x0[2], vlo, vhi, zlo, zhi, P, wk[5], wk[6])
+        st, J, it = sqp_ws(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk)
         if P[P_STEER_START] > 0.5 and max_iter > 0 and (
-                st != ST_OK or P[P_STEER_GATE] < 0.5 or second_start_pays(z, X, xr, new_ref, P)):
+                st != ST_OK or P[P_STEER_GATE] < 0.5 or second_start_pays(z, X, xr, new_ref, zlo, zhi, P)):
             starts[bi] = 2
             z2 = np.empty(n)
-            steer_bound_start(x0, xr, uprev, z, P, vlo, vhi, z2, X)
-            st2, J2, it2 = sqp_ws(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, X, wk)
+            steer_bound_start(x0, xr, uprev, z, P, vlo, vhi, zlo, zhi, z2, X)
+            st2, J2, it2 = sqp_ws(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk)
             it += it2
             if st2 == ST_OK and (st != ST_OK or J2 < J - _SAME_MINIMUM * (1.0 + abs(J))):
                 st = st2
                 z[:] = z2
     if st == ST_OK:
-        project(z, x0[2], vlo, vhi, P)
+        project(z, x0[2], vlo, vhi, zlo, zhi, P)
         rollout(x0, z, P, X)
         J = cost_of(X, z, xr, uprev, P)
         finite = math.isfinite(J)

@@ -12,7 +12,7 @@ import dataclasses
 import math
 import pathlib
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Mapping, Optional
 
 import yaml
 
@@ -110,6 +110,8 @@ class MPCConfig:
     q_du: tuple
     brake_decel: float
     relax_infeasible_speed_bounds: bool
+    steer_rate_max: Optional[float]   # [rad/s] |delta_k - delta_{k-1}| <= steer_rate_max * dt; None: no bound
+    jerk_max: Optional[float]         # [m/s^3] |a_0 - a_prev| <= jerk_max * dt (first move); None: no bound
     fast: FastSolverConfig
     ipopt: IpoptConfig
     source: str = field(default="<MPCConfig>", compare=False)
@@ -134,6 +136,13 @@ class MPCConfig:
         _check(self.brake_decel <= 0.0, "brake_decel", f"must be <= 0 (a deceleration), got {self.brake_decel}")
         _check(isinstance(self.relax_infeasible_speed_bounds, bool), "relax_infeasible_speed_bounds",
                f"must be true or false, got {self.relax_infeasible_speed_bounds!r}")
+        for key in ("steer_rate_max", "jerk_max"):
+            val = getattr(self, key)
+            if val is None:
+                continue
+            _finite(key, val)
+            _check(val > 0.0, key, f"must be > 0 (null: no bound), got {val}")
+            object.__setattr__(self, key, float(val))
         for key, size in (("q_x", 4), ("q_u", 2), ("q_du", 2)):
             val = getattr(self, key)
             _check(isinstance(val, (list, tuple)) and len(val) == size, key, f"must be a list of {size} numbers")

@@ -5,8 +5,9 @@
 * ``"fast"``: the same problem solved by the numba SQP of ``_kernels`` (exact Hessian,
   dense active-set QP), reaching the same optimum in a small fraction of the time.
 
-Both share the input checks, the heading unwrapping, the speed-bound tube, the choice of
-the initial guess and the fault handling, so that they differ only in the optimiser.
+Both share the input checks, the heading unwrapping, the speed-bound tube, the rate bounds
+(``_kernels.input_boxes`` and the steering-rate rows), the choice of the initial guess and
+the fault handling, so that they solve the same problem and differ only in the optimiser.
 A control step never raises on bad *values* (NaN/inf, solver failure): it returns the
 safe fallback command with ``ok=False``; bad *shapes* are programming errors and raise
 ``ValueError``.
@@ -84,6 +85,8 @@ def pack_params(cfg: MPCConfig) -> np.ndarray:
     P[K.P_EXACT] = 1.0 if cfg.fast.hessian == "exact" else 0.0
     P[K.P_STEER_START] = 1.0 if cfg.fast.steer_bound_start else 0.0
     P[K.P_STEER_GATE] = 1.0 if cfg.fast.steer_bound_gate else 0.0
+    P[K.P_STEER_RATE] = cfg.steer_rate_max if cfg.steer_rate_max is not None else 0.0
+    P[K.P_JERK] = cfg.jerk_max if cfg.jerk_max is not None else 0.0
     return P
 
 
@@ -317,6 +320,9 @@ class IpoptController(MPCController):
         qdu = ca.DM(cfg.q_du)
         J = ca.dot(qx, (x - ref) ** 2)
         speeds = []
+        # the steering rate rows of the fast solver (delta_k - delta_{k-1}, k >= 1); the first
+        # move's rate bounds are the per-problem boxes lbx/ubx of _kernels.input_boxes
+        rates = [Z[2 * k + 1] - Z[2 * k - 1] for k in range(1, N)] if cfg.steer_rate_max is not None else []
         for k in range(N):
             u = Z[2 * k:2 * k + 2]
             du = u - u_last
@@ -327,7 +333,7 @@ class IpoptController(MPCController):
             J += ca.dot(qx, (x - ref) ** 2)
             speeds.append(x[2])
             u_last = u
-        nlp = {"x": Z, "p": par, "f": J, "g": ca.vertcat(*speeds)}
+        nlp = {"x": Z, "p": par, "f": J, "g": ca.vertcat(*speeds, *rates)}
         opts = {
             "print_time": False,
             "ipopt.print_level": cfg.ipopt.print_level,
@@ -335,8 +341,9 @@ class IpoptController(MPCController):
             "ipopt.tol": cfg.ipopt.tol,
             "ipopt.sb": "yes",
         }
-        self._lbx = np.tile([cfg.a_min, cfg.delta_min], N)
-        self._ubx = np.tile([cfg.a_max, cfg.delta_max], N)
+        step = cfg.steer_rate_max * cfg.dt if rates else 0.0
+        self._rate_lo = np.full(len(rates), -step)
+        self._rate_hi = np.full(len(rates), step)
         return ca.nlpsol("bimacppo_mpc_ipopt", "ipopt", nlp, opts)
 
     def _solve_all(self, X0, Xref, Uprev, warm, has_warm, ref_prev, U, X, cost, status, iters):
@@ -345,16 +352,20 @@ class IpoptController(MPCController):
         xr = np.empty(4)
         vlo = np.empty(N)
         vhi = np.empty(N)
+        zlo = np.empty(2 * N)
+        zhi = np.empty(2 * N)
         z = np.empty(2 * N)
         texts = []
         for i in range(X0.shape[0]):
-            st = K.prepare(X0[i], Xref[i], Uprev[i], P, xr, vlo, vhi)
+            st = K.prepare(X0[i], Xref[i], Uprev[i], P, xr, vlo, vhi, zlo, zhi)
             text = STATUS_TEXT[st]
             if st == K.ST_OK:
-                K.initial_guess(X0[i], xr, Uprev[i], warm[i], has_warm[i], self.guesses, P, vlo, vhi, z, X[i])
+                K.initial_guess(X0[i], xr, Uprev[i], warm[i], has_warm[i], self.guesses, P, vlo, vhi, zlo, zhi,
+                                z, X[i])
                 try:
-                    sol = self._solver(x0=z, p=np.concatenate([X0[i], xr, Uprev[i]]), lbx=self._lbx,
-                                       ubx=self._ubx, lbg=vlo, ubg=vhi)
+                    sol = self._solver(x0=z, p=np.concatenate([X0[i], xr, Uprev[i]]), lbx=zlo, ubx=zhi,
+                                       lbg=np.concatenate([vlo, self._rate_lo]),
+                                       ubg=np.concatenate([vhi, self._rate_hi]))
                     stats = self._solver.stats()
                     iters[i] = int(stats.get("iter_count", 0))
                     if stats.get("success", False):
@@ -368,7 +379,7 @@ class IpoptController(MPCController):
                     text = f"solver_error: {type(exc).__name__}: {exc}"
             if st == K.ST_OK:
                 # IPOPT relaxes bounds by ~1e-8 internally; the projection makes them exact
-                K.project(z, X0[i, 2], vlo, vhi, P)
+                K.project(z, X0[i, 2], vlo, vhi, zlo, zhi, P)
                 K.rollout(X0[i], z, P, X[i])
                 J = K.cost_of(X[i], z, xr, Uprev[i], P)
                 if np.isfinite(J) and np.all(np.isfinite(z)):
