@@ -187,7 +187,8 @@ def test_port_in_use_and_bad_parameters_are_one_line_errors():
     assert rc == 2 and "Traceback" not in out, out
     errors = [ln for ln in out.splitlines() if ln.startswith("error:")]
     assert len(errors) == 1 and f"127.0.0.1:{port}" in errors[0] and "in use" in errors[0], out
-    for param, word in (("port:=70000", "port"), ("map_id:=nowhere", "map_id"), ("host:=", "host")):
+    for param, word in (("port:=70000", "port"), ("map_id:=nowhere", "map_id"), ("host:=", "host"),
+                        ("ego_topic:=bad topic", "ego_topic")):
         proc = _start("-m", "bimacppo_viz.ros.live_view", "--ros-args", "-p", param)
         rc, out = _stop_when_done(proc)
         errors = [ln for ln in out.splitlines() if ln.startswith("error:")]

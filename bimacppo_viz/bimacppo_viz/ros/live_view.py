@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.node import Node
+from rclpy.validate_topic_name import validate_topic_name
 
 from bimacppo_sim.config import WorldConfig
 from bimacppo_sim.road import available_maps, load_map
@@ -60,6 +61,11 @@ class LiveViewNode(Node):
         if not host:
             raise ConfigError(f"{NODE_NAME}: parameter host must not be empty")
         topics = {n: str(g(n)) for n in TOPIC_PARAMETERS}
+        for name, topic in topics.items():   # before the server binds its port
+            try:
+                validate_topic_name(topic)
+            except Exception as exc:  # noqa: BLE001 - rclpy's InvalidTopicNameException and its kin
+                raise ConfigError(f"{NODE_NAME}: parameter {name} {topic!r}: {one_line(exc)}") from None
         map_id = str(g("map_id"))
         road = None
         if map_id:
