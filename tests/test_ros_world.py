@@ -112,3 +112,49 @@ def test_realtime_world_never_applies_a_command_stamped_in_the_future():
         for n in nodes:
             n.destroy_node()
         rclpy.try_shutdown()
+
+
+def test_world_with_a_posed_map_publishes_in_the_map_frame(tmp_path):
+    """A map file's pose moves what the world publishes (EV, SVs, goal), not its simulation."""
+    import math
+
+    import numpy as np
+    import yaml
+
+    from bimacppo_sim.road import MAP_DIR
+    from bimacppo_sim.ros.world_node import WorldNode
+
+    spec = yaml.safe_load((MAP_DIR / "dual_lane_4way.yaml").read_text())
+    spec["pose"] = {"x": -250.0, "y": 730.0, "heading": -2.0}
+    path = tmp_path / "posed.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    rclpy.init()
+    ex = SingleThreadedExecutor()
+    nodes = []
+    try:
+        world = WorldNode(parameter_overrides=[Parameter("map_id", value=str(path)),
+                                               Parameter("scenario.n_sv", value=2)])
+        probe = Node("posed_probe")
+        got = {}
+        probe.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM, lambda m: got.setdefault("odom", m), I.STATE_QOS)
+        probe.create_subscription(I.MultiDOFJointTrajectory, I.TOPIC_OBJECTS,
+                                  lambda m: got.setdefault("objects", m), I.STATE_QOS)
+        probe.create_subscription(I.PoseStamped, I.TOPIC_GOAL, lambda m: got.setdefault("goal", m), I.LATCHED_QOS)
+        nodes = [world, probe]
+        for n in nodes:
+            ex.add_node(n)
+        t_end = time.monotonic() + 10.0
+        while len(got) < 3 and time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.02)
+        assert len(got) == 3, sorted(got)
+        f = world.world.road.frame
+        ego = I.odometry_to_state(got["odom"])
+        assert np.allclose(f.states_to_map(ego), world.world.ego, atol=1e-9)
+        assert math.hypot(ego[0] + 250.0, ego[1] - 730.0) < 100.0    # near the posed junction
+        _, svs = I.objects_to_svs(got["objects"])
+        assert np.allclose(f.states_to_map(svs), np.asarray(world.world.sv_states()).reshape(-1, 4), atol=1e-9)
+        assert np.allclose(f.poses_to_map(I.pose_to_goal(got["goal"])), world.world.goal, atol=1e-9)
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()
