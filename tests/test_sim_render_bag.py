@@ -129,6 +129,10 @@ def test_render_bag_draws_every_other_state_of_each_episode(bag, tmp_path, capsy
     assert egos[ends[0], 1] > egos[0, 1] + 10
     assert last[0] < first[0] - 20
     assert not np.array_equal(frames[0][0], frames[1][0])
+    import os
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~umask     # a new file's mode, not the temp file's
 
 
 def test_render_bag_without_reference_and_markers_still_draws_states(tmp_path, capsys):

@@ -108,6 +108,9 @@ def cmd_render_bag(a):
             view.show(f.ego, f.svs, f.goal, f.route, f.time_s, f.task, f.outcome)
             gif.append(r.rgb_array(x_imr=f.x_imr))
         gif.close()
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)   # mkstemp makes it private; the GIF gets a new file's mode
         os.replace(tmp, output)
     finally:
         r.close()
