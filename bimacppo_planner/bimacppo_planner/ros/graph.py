@@ -74,7 +74,11 @@ def run(args) -> int:
             P("episodes", value=args.episodes), P("seed_base", value=args.seed_base)])
         nodes += [world, planner, ctrl, cur]
         if args.live_view is not False:   # the flag alone: the node's default port
-            from bimacppo_viz.ros.live_view import LiveViewNode
+            try:
+                from bimacppo_viz.ros.live_view import LiveViewNode
+            except ImportError as exc:
+                raise LookupError(f"--live-view needs bimacppo_viz and foxglove-sdk (scripts/install.sh "
+                                  f"installs both): {exc}") from None
             nodes.append(LiveViewNode(parameter_overrides=[P("map_id", value=args.map)] + (
                 [] if args.live_view is None else [P("port", value=args.live_view)])))
         for n in nodes:
