@@ -26,6 +26,19 @@ def test_lock_share_reversals_and_jerk_by_hand():
     assert math.isnan(empty.full_lock_pct) and math.isnan(empty.rms_jerk)
 
 
+def test_go_stop_alternations_by_hand():
+    c = Comfort(delta_max=0.6, dt=0.1)
+    # decisions: go, [stop], go, go, stop, stop, [go], stop: the bracketed ones sit between two
+    # decisions of the other kind; the held stop (two in a row) does not count
+    c.add_episode(np.zeros((3, 2)), [8.0, 0.0, 4.0, 4.0, 0.0, 0.0, 2.0, 0.0])
+    assert (c.triples, c.alternations) == (6, 2) and c.alternation_pct == pytest.approx(200 / 6)
+    c.add_episode(np.zeros((3, 2)), [0.0, 2.0])               # two decisions: no triple
+    assert (c.triples, c.alternations) == (6, 2)
+    c.add_episode(np.zeros((3, 2)), [0.0, 2.0, 0.0, 2.0])     # stop-go-stop-go: both middle ones alternate
+    assert (c.triples, c.alternations) == (8, 4)
+    assert math.isnan(Comfort(delta_max=0.6, dt=0.1).alternation_pct)
+
+
 def test_every_evaluation_reports_comfort_per_cell():
     res = evaluate(None, "dual_lane_4way", [1], [0], episodes=2, workers=1, random_row=False)
     (cell,) = res
@@ -37,3 +50,4 @@ def test_every_evaluation_reports_comfort_per_cell():
     assert float(row["rms_jerk"]) == pytest.approx(q.rms_jerk, abs=0.001)
     md = to_markdown(res)
     assert "Ride comfort" in md and f"{q.full_lock_pct:.1f} / {q.reversal_pct:.1f} / {q.rms_jerk:.1f}" in md
+    assert q.triples > 0 and float(row["go_stop_alternation_pct"]) == pytest.approx(q.alternation_pct, abs=0.01)

@@ -8,7 +8,10 @@ applied, tick by tick, within each episode (the first tick of an episode has no 
 
 * full lock: |δ| >= δ_max - LOCK_TOLERANCE (δ_max = the vehicle's steering limit);
 * lock-to-lock reversal: one tick at one lock, the next at the other;
-* jerk: (a_t - a_{t-1}) / dt; RMS over the consecutive pairs.
+* jerk: (a_t - a_{t-1}) / dt; RMS over the consecutive pairs;
+* go/stop alternation (per decision, from the planner's reference speeds): a decision whose
+  reference is a stop (0 m/s) between two that go, or a go between two stops. A planner that
+  flips its mind every decision makes the NMPC brake and accelerate in turn.
 """
 from __future__ import annotations
 
@@ -31,9 +34,17 @@ class Comfort:
     pairs: int = 0            # consecutive tick pairs within an episode
     reversals: int = 0
     jerk_sq: float = 0.0
+    triples: int = 0          # runs of three consecutive decisions within an episode
+    alternations: int = 0
 
-    def add_episode(self, commands) -> None:
-        """``commands``: (T, 2) array of the [a, δ] applied at each tick of one episode."""
+    def add_episode(self, commands, ref_speeds=None) -> None:
+        """``commands``: (T, 2) array of the [a, δ] applied at each tick of one episode;
+        ``ref_speeds``: the reference speed of each of its decisions (optional)."""
+        if ref_speeds is not None:
+            stop = np.asarray(ref_speeds, dtype=float).reshape(-1) == 0.0
+            if len(stop) > 2:
+                self.triples += len(stop) - 2
+                self.alternations += int(np.count_nonzero((stop[1:-1] != stop[:-2]) & (stop[1:-1] != stop[2:])))
         u = np.asarray(commands, dtype=float).reshape(-1, 2)
         if len(u) == 0:
             return
@@ -59,6 +70,12 @@ class Comfort:
     def rms_jerk(self) -> float:
         return math.sqrt(self.jerk_sq / self.pairs) if self.pairs else math.nan
 
+    @property
+    def alternation_pct(self) -> float:
+        """Go/stop alternations per 100 runs of three consecutive decisions."""
+        return 100.0 * self.alternations / self.triples if self.triples else math.nan
+
     def to_dict(self) -> dict:
         return {"ticks": self.ticks, "lock_ticks": self.lock_ticks, "pairs": self.pairs,
-                "reversals": self.reversals, "jerk_sq": self.jerk_sq}
+                "reversals": self.reversals, "jerk_sq": self.jerk_sq, "triples": self.triples,
+                "alternations": self.alternations}

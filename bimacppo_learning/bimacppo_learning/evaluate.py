@@ -178,12 +178,13 @@ def _run_cell(job: tuple) -> tuple:
             if callable(begin):
                 begin(seed)
             done = False
-            commands = []
+            commands, speeds = [], []
             while not done:
                 obs, _, term, trunc, info = env.step(check_action(actor(obs), nvec))
                 commands.append(info["commands"])
+                speeds.append(float(info["x_imr"][2]))
                 done = term or trunc
-            comfort.add_episode(np.concatenate(commands))
+            comfort.add_episode(np.concatenate(commands), speeds)
             counts[info["outcome"]] += 1
             threat += int(bool(info.get("threat_entry")))
             returns.append(float(info["episode_return"]))
@@ -406,15 +407,16 @@ def to_markdown(results: list[CellResult], title: str = "") -> str:
         lines += ["", "random policy: uniform random actions on the same scenario seeds (the floor)."]
     if any(c.comfort is not None and c.comfort.ticks for c in mine):
         lines += ["", "Ride comfort (the policy's cells): ticks at full steering lock (%) / lock-to-lock "
-                      "reversals between consecutive ticks (%) / RMS jerk (m/s³)", "",
-                  "| task | " + " | ".join(f"N_sv={n} lock / reversals / jerk" for n in n_svs) + " |", sep]
+                      "reversals between consecutive ticks (%) / RMS jerk (m/s³) / go-stop alternations "
+                      "between consecutive decisions (%)", "",
+                  "| task | " + " | ".join(f"N_sv={n} lock / rev. / jerk / alt." for n in n_svs) + " |", sep]
         for t in sorted({c.task for c in mine}):
             row = []
             for n in n_svs:
                 c = by.get((t, n))
                 q = None if c is None else c.comfort
                 row.append("–" if q is None or not q.ticks else
-                           f"{q.full_lock_pct:.1f} / {q.reversal_pct:.1f} / {q.rms_jerk:.1f}")
+                           f"{q.full_lock_pct:.1f} / {q.reversal_pct:.1f} / {q.rms_jerk:.1f} / {q.alternation_pct:.1f}")
             lines.append(f"| {TASKS[t]} | " + " | ".join(row) + " |")
     if any(c.n_sv > 0 for c in mine):
         lines += ["", "Entered the junction while the scripted yield rule's threat test held (% of the "
@@ -433,11 +435,12 @@ def to_csv(results: list[CellResult]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["task", "n_sv", "episodes", "success_pct", "collision_pct", "timeout_pct", "mean_return",
-                "full_lock_pct", "lock_reversal_pct", "rms_jerk", "threat_entry_pct", "seed_set"])
+                "full_lock_pct", "lock_reversal_pct", "rms_jerk", "go_stop_alternation_pct", "threat_entry_pct",
+                "seed_set"])
     for c in results:
         q = c.comfort
-        ride = ["nan"] * 3 if q is None or not q.ticks else \
-            [f"{q.full_lock_pct:.2f}", f"{q.reversal_pct:.2f}", f"{q.rms_jerk:.3f}"]
+        ride = ["nan"] * 4 if q is None or not q.ticks else \
+            [f"{q.full_lock_pct:.2f}", f"{q.reversal_pct:.2f}", f"{q.rms_jerk:.3f}", f"{q.alternation_pct:.2f}"]
         w.writerow([TASKS[c.task], c.n_sv, c.n, f"{c.pct('success'):.1f}", f"{c.pct('collision'):.1f}",
                     f"{c.pct('timeout'):.1f}", f"{np.mean(c.returns) if c.returns else float('nan'):.3f}", *ride,
                     f"{100.0 * c.threat_entries / max(c.n, 1):.1f}", c.seed_set])
