@@ -606,6 +606,13 @@ def _lines(g, who, needle):
     return F.log_lines(g["dir"] / f"{who}.log", needle)
 
 
+def _warned_ticks(g, needle):
+    """Stamps of the ticks the world warned about, in order (``tick <stamp> ns <needle>``)."""
+    g["logs"]["world"].flush()
+    text = (g["dir"] / "world.log").read_text().splitlines()
+    return [line.split("tick ", 1)[1].split(" ", 1)[0] for line in text if needle in line]
+
+
 def _foreign_result(stamp_ns, **kw):
     """A well-formed result of no episode the curriculum runs (its seeds count from 0)."""
     return _result(stamp_ns, seed=987_654, **kw)
@@ -634,7 +641,8 @@ def test_bogus_result_one_tick_ahead_is_followed_by_a_resync(liveness):
     assert g["up"]
     assert w.progress(ticks=3, timeout=30)
     before = {k: _lines(g, k, RESYNC_LINE) for k in ("planner", "controller")}
-    warned0 = _lines(g, "world", f"re-sent {RESEND_WARN} times without a command")
+    warn = f"re-sent {RESEND_WARN} times without a command"
+    warned0 = _warned_ticks(g, warn)
     newest = max(w.states)
     w.publish(g["pubs"][I.TOPIC_RESULT], _foreign_result(newest + TICK))
     t0 = time.monotonic()
@@ -642,14 +650,17 @@ def test_bogus_result_one_tick_ahead_is_followed_by_a_resync(liveness):
     delay = time.monotonic() - t0
     w.spin(1.0)
     resyncs = {k: _lines(g, k, RESYNC_LINE) - before[k] for k in before}
-    warned = _lines(g, "world", f"re-sent {RESEND_WARN} times without a command") - warned0
+    # one warning per stalled tick: two when the result reached one node only after it had
+    # answered the tick (then the other node stalls on it, the first on the next tick)
+    warned = _warned_ticks(g, warn)[len(warned0):]
     held = moving and resyncs["planner"] == 1 and resyncs["controller"] <= 1 and not _alive(g)
     LEDGER.record("liveness", "result one tick after the newest state -> planner and controller resync", held,
                   f"progress={moving} delay={delay:.1f}s resync_lines={resyncs}")
-    LEDGER.record("liveness", "world warns once per stall with the re-send count", moving and warned == 1,
-                  f"warnings={warned}")
+    once = moving and 1 <= len(warned) <= 2 and len(set(warned)) == len(warned)
+    LEDGER.record("liveness", "world warns once per stall with the re-send count", once,
+                  f"warned_ticks={warned}")
     assert held, (moving, resyncs, _logs(g))
-    assert warned == 1, _logs(g)
+    assert once, (warned, _logs(g))
     assert not w.bad, w.bad[:5]
 
 
