@@ -13,12 +13,9 @@ held) is published every check. In lockstep, sim time only advances when the loo
 so the watchdog cannot inject commands there; it acts in realtime and deployment.
 
 Faults (docs/faults.md): every callback is ``runtime.guarded`` (a bad message is dropped
-with a throttled warning, the node never dies of one); references older than the newest
-answered one of the episode, or more than ``max_stamp_jump_s`` ahead of it, are dropped
-(``StampFilter``); a goal or result stamped that far ahead of every state seen is
-dropped too (it would stall the episode); a goal older than the current one means the
-source restarted (time went back), as do 5 stale states in a row: the episode state is
-reset. A solve that yields a
+with a throttled warning, the node never dies of one); which input is answered, repeated,
+kept or dropped is the tick protocol's verdict (``tick_protocol.TickProtocol``, its table in
+docs/interfaces.md), shared with the planner. A solve that yields a
 non-finite input is answered with the safe stop instead.
 """
 from __future__ import annotations
@@ -31,12 +28,12 @@ from rclpy.node import Node
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import ConfigError, guarded, param_file, param_range, run_single
-from bimacppo_sim.ros.tick_follower import TickFollower
+from bimacppo_sim.ros.tick_protocol import REFUSED, TickProtocol, Verdict
 
 SOLVERS = ("fast", "ipopt")
 
 
-class ControllerNode(TickFollower, Node):
+class ControllerNode(Node):
     """Thin adapter over ``MPCController.solve``."""
 
     def __init__(self, **kwargs) -> None:
@@ -60,7 +57,9 @@ class ControllerNode(TickFollower, Node):
         cache_size = int(param_range(g("cache_size"), "cache_size", name, lo=1, hi=100_000))
         jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", name,
                                         lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
-        self._init_tick_follower(cache_size, jump_ns)   # answers: stamp -> JointTrajectory sent
+        # answers: stamp -> JointTrajectory sent
+        self.protocol = TickProtocol(cache_size, jump_ns, log=lambda level, m: getattr(self.get_logger(), level)(m),
+                                     on_restart=self._clear_tick_caches)
         self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
         self._warm_up()
         self.u_prev = np.zeros(2)
@@ -99,54 +98,55 @@ class ControllerNode(TickFollower, Node):
         self.states.clear(), self.pending.clear()
 
     def _on_goal(self, msg) -> None:
-        self._accept_goal(msg)
+        if self.protocol.on_goal(I.stamp_to_ns(msg.header.stamp), I.pose_to_goal(msg)) in REFUSED:
+            raise I.MessageError(self.protocol.reason)
         self._process()
 
     def _on_result(self, msg) -> None:
         res = I.status_to_result(msg)
-        self._check_result(res.stamp_ns)
-        self.gate.on_result(res.stamp_ns)
+        if self.protocol.on_result(res.stamp_ns) in REFUSED:
+            raise I.MessageError(self.protocol.reason)
 
     def _on_odom(self, msg) -> None:
         x = I.odometry_to_state(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
-        self._check_order(stamp, "state", x)
-        self._note_state(stamp)
+        if self.protocol.on_state(stamp, x) in REFUSED:
+            raise I.MessageError(self.protocol.reason)
         self.states[stamp] = x
-        self._bounded(self.states)
+        self.protocol.bound(self.states)
         self._last_state = self._now()
         self._process()
 
     def _on_reference(self, msg) -> None:
         x_ref = I.odometry_to_reference(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
-        if stamp in self.answers:
+        verdict = self.protocol.on_input(stamp, "reference")
+        if verdict is Verdict.REPEAT:
             self._last_ref = self._now()
-            self.pub.publish(self.answers[stamp])
+            self.pub.publish(self.protocol.cached(stamp))
             return
-        why = self.order.check(stamp)
-        if why is not None:
-            raise I.MessageError(f"reference stamp {stamp} ns {why} (newest answered {self.order.newest} ns)")
+        if verdict in REFUSED:
+            raise I.MessageError(self.protocol.reason)
         self._last_ref = self._now()
         self.pending[stamp] = x_ref
-        self._bounded(self.pending)
+        self.protocol.bound(self.pending)
         self._process()
 
     def _process(self) -> None:
+        p = self.protocol
         for stamp in list(self.pending):
-            kind = self._classify(stamp)
-            if kind == "stale":
+            kind = p.classify(stamp)
+            if kind is Verdict.STALE:
                 del self.pending[stamp]
                 continue
-            if kind == "wait" or stamp not in self.states:
+            if kind is Verdict.WAIT or stamp not in self.states:
                 continue
             x_ref = self.pending.pop(stamp)
-            if self.gate.new_episode():
+            if p.start_episode():
                 self.ctrl.reset()
                 self.u_prev = np.zeros(2)
-                self.order.reset()
-            if self.order.check(stamp) is not None:
-                continue  # an older reference answered meanwhile
+            if not p.current(stamp):
+                continue  # a newer reference answered meanwhile
             try:
                 sol = self.ctrl.solve(self.states[stamp], x_ref, self.u_prev)
                 u = np.asarray(sol.u, dtype=float)
@@ -156,7 +156,6 @@ class ControllerNode(TickFollower, Node):
                 self.get_logger().error(f"MPC solve raised at {stamp} ns: {type(exc).__name__}: {exc}",
                                         throttle_duration_sec=1.0)
             self.solves += 1
-            self.order.answered(stamp)
             if sol is not None and not sol.ok:
                 self.failures += 1
                 self.get_logger().warning(f"MPC fallback at {stamp} ns: {sol.status}", throttle_duration_sec=1.0)
@@ -170,7 +169,7 @@ class ControllerNode(TickFollower, Node):
                     horizon = None
             self.u_prev = u
             cmd = I.command_to_trajectory(u, stamp, horizon, self.cfg.dt)
-            self._answered(stamp, cmd, self.states[stamp])
+            p.answered(stamp, cmd, self.states[stamp])
             self.pub.publish(cmd)
 
     def _watchdog(self) -> None:

@@ -20,11 +20,10 @@ SVs and goal are moved into the map's own frame before the policy sees them and 
 moved back (``geometry.MapFrame``), so a source whose junction is elsewhere needs only the
 matching map file (``map_id``: a map id or a YAML path).
 
-Faults (docs/faults.md): callbacks are ``runtime.guarded``; states older than the newest
-answered one of the episode or more than ``max_stamp_jump_s`` ahead are dropped
-(``StampFilter``), as are goals/results stamped that far ahead of every state seen; a goal
-older than the current one, or 5 stale states in a row (the source restarted), resets the
-episode state; a policy step
+Faults (docs/faults.md): callbacks are ``runtime.guarded``; which input is answered,
+repeated, kept or dropped is the tick protocol's verdict (``tick_protocol.TickProtocol``,
+its table in docs/interfaces.md: stale and far-future stamps, goals and results far ahead,
+a restarted source, a refused tick the source keeps re-sending); a policy step
 that raises or returns a non-finite x_IMR is logged and that tick left unanswered (the
 controller's watchdog then stops the vehicle).
 """
@@ -41,7 +40,7 @@ from bimacppo_planner.decision import EnvConfig, step_reward
 from bimacppo_sim.geometry import MapFrame
 from bimacppo_sim.ros import interfaces as I
 from bimacppo_sim.ros.runtime import ConfigError, guarded, one_line, param_file, param_range, run_single
-from bimacppo_sim.ros.tick_follower import TickFollower
+from bimacppo_sim.ros.tick_protocol import REFUSED, TickProtocol, Verdict
 
 DEFAULT_CLASS = "bimacppo_planner.agent:HighLevelPlanner"
 
@@ -118,7 +117,7 @@ def episode_return(lane_changes, outcome: str, facts: dict, reward_cfg) -> float
                                      float(facts["dist_to_goal"])))
 
 
-class PlannerNode(TickFollower, Node):
+class PlannerNode(Node):
     """Thin adapter over ``HighLevelPlanner.reset/step``."""
 
     def __init__(self, planner=None, **kwargs) -> None:
@@ -133,7 +132,8 @@ class PlannerNode(TickFollower, Node):
         cache_size = int(param_range(g("cache_size"), "cache_size", "planner", lo=1, hi=100_000))
         jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", "planner",
                                         lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
-        self._init_tick_follower(cache_size, jump_ns)   # answers: stamp -> reference sent
+        # answers: stamp -> reference sent
+        self.protocol = TickProtocol(cache_size, jump_ns, log=self._log, on_restart=self._clear_tick_caches)
         self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
         if planner is None:
             planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"))
@@ -167,6 +167,9 @@ class PlannerNode(TickFollower, Node):
         sub(I.Odometry, I.TOPIC_EGO_ODOM, self._on_odom, I.STATE_QOS)
         sub(I.MultiDOFJointTrajectory, I.TOPIC_OBJECTS, self._on_objects, I.STATE_QOS)
 
+    def _log(self, level: str, msg: str) -> None:
+        getattr(self.get_logger(), level)(msg)
+
     def _clear_tick_caches(self) -> None:
         self.states.clear(), self.objects.clear()
         self.decisions_ep, self.ticks_ep = [], 0
@@ -181,22 +184,20 @@ class PlannerNode(TickFollower, Node):
             facts["n_pcp"] = str(int(n))
 
     def _on_goal(self, msg) -> None:
-        self._accept_goal(msg)
+        goal, stamp = I.pose_to_goal(msg), I.stamp_to_ns(msg.header.stamp)
+        if self.protocol.on_goal(stamp, goal) in REFUSED:
+            raise I.MessageError(self.protocol.reason)
         self._process()
 
     def _on_result(self, msg) -> None:
         res = I.status_to_result(msg)
-        self._check_result(res.stamp_ns)
         # the episode whose decisions are held starts at its first decision (the next goal
-        # may already be here: DDS does not order result and goal across topics); its
-        # result comes at least one tick later
-        start = self.decisions_ep[0][0] if self.decisions_ep else self.gate.goal_stamp
-        if start is not None and res.stamp_ns <= start:
-            raise I.MessageError(f"result stamp {res.stamp_ns} ns is not after the start of the episode it "
-                                 f"would end ({start} ns)")
-        was_active = self.gate.goal_stamp is not None and not self.gate.ended
-        self.gate.on_result(res.stamp_ns)
-        if not was_active:
+        # may already be here: DDS does not order result and goal across topics)
+        start = self.decisions_ep[0][0] if self.decisions_ep else self.protocol.goal_stamp
+        verdict = self.protocol.on_result(res.stamp_ns, start)
+        if verdict in REFUSED:
+            raise I.MessageError(self.protocol.reason)
+        if verdict is not Verdict.ENDS:
             return
         flags = [c for s, c in self.decisions_ep if s < res.stamp_ns]
         facts = I.result_extras(msg)
@@ -222,47 +223,48 @@ class PlannerNode(TickFollower, Node):
     def _on_odom(self, msg) -> None:
         x = I.odometry_to_state(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
-        self._check_order(stamp, "state", x)
-        self._note_state(stamp)
+        if self.protocol.on_state(stamp, x) in REFUSED:
+            raise I.MessageError(self.protocol.reason)
         self.states[stamp] = x
-        self._bounded(self.states)
+        self.protocol.bound(self.states)
         self._process()
 
     def _on_objects(self, msg) -> None:
         ids, svs = I.objects_to_svs(msg)
         stamp = I.stamp_to_ns(msg.header.stamp)
-        self._check_order(stamp, "objects")
+        if self.protocol.on_input(stamp, "objects") in REFUSED:
+            raise I.MessageError(self.protocol.reason)
         self.objects[stamp] = (ids, svs)
-        self._bounded(self.objects)
+        self.protocol.bound(self.objects)
         self._process()
 
     def _process(self) -> None:
+        p = self.protocol
         for stamp in sorted(set(self.states) & set(self.objects)):
-            if stamp in self.answers:
-                self.pub_ref.publish(self.answers[stamp])  # a re-sent tick: same answer
+            if p.cached(stamp) is not None:
+                self.pub_ref.publish(p.cached(stamp))  # a re-sent tick: same answer
                 del self.states[stamp], self.objects[stamp]
                 continue
-            kind = self._classify(stamp)
-            if kind == "wait":
+            kind = p.classify(stamp)
+            if kind is Verdict.WAIT:
                 continue
             ego_w, (ids, svs) = self.states.pop(stamp), self.objects.pop(stamp)
-            if kind == "stale":
+            if kind is Verdict.STALE:
                 continue
             # the policy works in the map's own frame
             ego, svs = self.frame.states_to_map(ego_w), self.frame.states_to_map(svs)
-            if self.gate.new_episode():
-                self.order.reset()
-                goal = self.frame.poses_to_map(np.asarray(self.gate.goal, dtype=float))
+            if p.start_episode():
+                goal = self.frame.poses_to_map(np.asarray(p.goal, dtype=float))
                 try:
                     self.hp.reset(ego, goal)
                 except Exception as exc:  # noqa: BLE001 - e.g. no route to an implausible goal
                     self.get_logger().error(f"planner reset failed at {stamp} ns: {type(exc).__name__}: "
                                             f"{one_line(exc)}", throttle_duration_sec=1.0)
-                    self.gate._started = None  # retry the reset with the next state
+                    p.retry_start()  # retry the reset with the next state
                     continue
                 self.decisions_ep, self.ticks_ep = [], 0
                 self.ev_start, self.ep_goal, self.sv_tracks = ego[:2].copy(), goal, {}
-            if self.order.check(stamp) is not None:
+            if not p.current(stamp):
                 continue  # a newer stamp was answered meanwhile
             if self.ticks_ep % self.decision_every == 0:
                 # as IntersectionEnv.step: one decision, held for decision_every ticks
@@ -281,10 +283,9 @@ class PlannerNode(TickFollower, Node):
             self.ticks_ep += 1
             for i, sv in zip(ids, svs):
                 self.sv_tracks.setdefault(i, [sv[:2].copy(), None])[1] = sv[:2].copy()
-            self.order.answered(stamp)
             x_imr = self.frame.states_to_world(self.x_imr)
             ref = I.reference_to_odometry(x_imr, stamp)
-            self._answered(stamp, ref, ego_w)
+            p.answered(stamp, ref, ego_w)
             self.pub_ref.publish(ref)
             if self.markers_on:
                 self.pub_markers.publish(I.reference_markers(x_imr, stamp))
