@@ -254,3 +254,39 @@ def test_route_from_markers_takes_the_worlds_route_only():
     assert route_from_markers(markers).tolist() == route[:, :2].tolist()
     assert route_from_markers(I.world_markers([0, 0, 0, 0], [], None, None, 100).markers) is None
     assert route_from_markers(I.reference_markers([0, 0, 1, 0], 100).markers) is None
+
+
+def test_progress_bars_on_a_terminal_only(bag, tmp_path):
+    """On a terminal, reading and rendering show tqdm bars on stderr; piped, stderr stays quiet."""
+    import fcntl
+    import os
+    import pty
+    import select
+    import struct
+    import subprocess
+    import sys
+    import termios
+
+    cmd = [sys.executable, "-m", "bimacppo_sim.cli", "render-bag", str(bag[0]), "--map", MAP, "--every", "10"]
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))   # a sized terminal
+    proc = subprocess.Popen([*cmd, "-o", str(tmp_path / "tty.gif")], stderr=slave, stdout=subprocess.PIPE)
+    os.close(slave)
+    shown = b""
+    while True:
+        ready, _, _ = select.select([master], [], [], 0.5)
+        if ready:
+            try:
+                data = os.read(master, 65536)
+            except OSError:   # the child closed its end
+                break
+            if not data:
+                break
+            shown += data
+        elif proc.poll() is not None:
+            break
+    assert proc.wait(timeout=120) == 0
+    os.close(master)
+    assert b"rendering:" in shown and b"frame/s" in shown, shown[-500:]
+    piped = subprocess.run([*cmd, "-o", str(tmp_path / "pipe.gif")], capture_output=True, text=True, timeout=120)
+    assert piped.returncode == 0 and "rendering" not in piped.stderr, piped.stderr
