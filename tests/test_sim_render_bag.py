@@ -33,7 +33,7 @@ def _plain(msg):
     return msg
 
 
-def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, odom_type=None):
+def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, odom_type=None, odom_frame=None):
     """Episodes of a World driven by the 'go' driver, as the graph publishes them; returns
     (stamps of the states, outcomes, EV states)."""
     w = World(load_map(MAP))
@@ -58,6 +58,8 @@ def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, o
             if len(stamps) == 0 or world.time == 0.0:
                 put(I.TOPIC_GOAL, I.goal_to_pose(world.goal, stamp), stamp)
             odom = I.state_to_odometry(ego, stamp)
+            if odom_frame:
+                odom.header.frame_id = odom_frame
             if odom_type:
                 from std_msgs.msg import String
                 odom = String(data="not an odometry")
@@ -184,17 +186,20 @@ def test_existing_output_is_kept_unless_overwrite(bag, tmp_path, capsys):
     assert gif_named_bag.read_bytes() == path.read_bytes()
 
 
-@pytest.mark.parametrize("case", ["missing", "garbage", "no_odom", "wrong_type", "not_gif", "no_dir"])
+@pytest.mark.parametrize("case", ["missing", "garbage", "no_odom", "wrong_type", "bad_frame", "not_gif", "no_dir"])
 def test_bad_inputs_are_one_error_line(case, bag, tmp_path, capsys):
     src, out = tmp_path / "x.mcap", tmp_path / "x.gif"
     want = {"missing": "no such file", "garbage": "not a readable MCAP", "no_odom": "/ego/odom",
-            "wrong_type": "std_msgs/msg/String", "not_gif": ".gif", "no_dir": "does not exist"}[case]
+            "wrong_type": "std_msgs/msg/String", "bad_frame": "rejected by the converters", "not_gif": ".gif",
+            "no_dir": "does not exist"}[case]
     if case == "garbage":
         src.write_bytes(np.random.default_rng(0).bytes(4096))
     elif case == "no_odom":
         _write_bag(src, with_topics=(I.TOPIC_GOAL, I.TOPIC_OBJECTS))
     elif case == "wrong_type":
         _write_bag(src, odom_type="std_msgs/msg/String")
+    elif case == "bad_frame":
+        _write_bag(src, odom_frame="odom")
     elif case in ("not_gif", "no_dir"):
         src = bag[0]
         out = tmp_path / "x.png" if case == "not_gif" else tmp_path / "nowhere" / "x.gif"

@@ -145,9 +145,8 @@ def read_bag(path, progress: Optional[Callable[[int], None]] = None) -> BagFrame
         return (I.stamp_to_ns(m.markers[0].header.stamp), pts) if pts is not None else (-1, None)
 
     def result(m):
-        values = I.result_extras(m)
         res = I.status_to_result(m)
-        return (res.stamp_ns, (res.task, res.outcome, values))
+        return (res.stamp_ns, (res.task, res.outcome))
 
     egos = convert(I.TOPIC_EGO_ODOM, stamped(I.odometry_to_state))
     objects = convert(I.TOPIC_OBJECTS, stamped(I.objects_to_svs))
@@ -157,6 +156,9 @@ def read_bag(path, progress: Optional[Callable[[int], None]] = None) -> BagFrame
     results = convert(I.TOPIC_RESULT, result)
     for topic, n in rejected.items():
         skipped.setdefault(topic, f"{n} message(s) rejected by the converters")
+    if not egos:
+        raise BagRenderError(f"{path}: all {rejected.get(I.TOPIC_EGO_ODOM, 0)} {I.TOPIC_EGO_ODOM} messages "
+                             "were rejected by the converters (docs/interfaces.md: frame map, finite values)")
 
     o_st, g_st, r_st = [s for s, _ in objects], [s for s, _ in goals], [s for s, _ in routes]
     res_st = [s for s, _ in results]
