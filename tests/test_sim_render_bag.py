@@ -4,6 +4,8 @@ The bags are written here with mcap_ros2's writer (not our recorder) from real W
 each message built by the converters of interfaces.py; bad inputs give one error line and exit
 2, and an existing output survives unless --overwrite.
 """
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -160,7 +162,7 @@ def test_max_frames_thins_a_long_recording(bag, tmp_path, capsys):
     assert main(["render-bag", str(path), "-o", str(out), "--map", MAP, "--max-frames", "10"]) == 0
     printed = capsys.readouterr().out
     every = -(-len(stamps) // 10)
-    assert f"every {every}th" in printed
+    assert f"one in {every} " in printed
     frames = _gif(out)
     assert 10 <= len(frames) <= 10 + len(outcomes)
     assert {d for _, d in frames} == {100 * every}
@@ -186,12 +188,13 @@ def test_existing_output_is_kept_unless_overwrite(bag, tmp_path, capsys):
     assert gif_named_bag.read_bytes() == path.read_bytes()
 
 
-@pytest.mark.parametrize("case", ["missing", "garbage", "no_odom", "wrong_type", "bad_frame", "not_gif", "no_dir"])
+@pytest.mark.parametrize("case", ["missing", "garbage", "no_odom", "wrong_type", "bad_frame", "not_gif", "no_dir",
+                                  "read_only_dir"])
 def test_bad_inputs_are_one_error_line(case, bag, tmp_path, capsys):
     src, out = tmp_path / "x.mcap", tmp_path / "x.gif"
     want = {"missing": "no such file", "garbage": "not a readable MCAP", "no_odom": "/ego/odom",
             "wrong_type": "std_msgs/msg/String", "bad_frame": "rejected by the converters", "not_gif": ".gif",
-            "no_dir": "does not exist"}[case]
+            "no_dir": "does not exist", "read_only_dir": "cannot write in"}[case]
     if case == "garbage":
         src.write_bytes(np.random.default_rng(0).bytes(4096))
     elif case == "no_odom":
@@ -200,9 +203,11 @@ def test_bad_inputs_are_one_error_line(case, bag, tmp_path, capsys):
         _write_bag(src, odom_type="std_msgs/msg/String")
     elif case == "bad_frame":
         _write_bag(src, odom_frame="odom")
-    elif case in ("not_gif", "no_dir"):
+    elif case in ("not_gif", "no_dir", "read_only_dir"):
         src = bag[0]
-        out = tmp_path / "x.png" if case == "not_gif" else tmp_path / "nowhere" / "x.gif"
+        # /sys refuses new files even to root (a read-only directory would not stop root)
+        out = {"not_gif": tmp_path / "x.png", "no_dir": tmp_path / "nowhere" / "x.gif",
+               "read_only_dir": Path("/sys/bimacppo_render_bag_test.gif")}[case]
     assert main(["render-bag", str(src), "-o", str(out), "--map", MAP]) == 2
     errors, err = _errors(capsys)
     assert len(errors) == 1 and want in errors[0], err

@@ -95,14 +95,17 @@ def cmd_render_bag(a):
     frames = bag.frames
     every = max(a.every, math.ceil(len(frames) / a.max_frames))
     if every > a.every:
-        print(f"note: {len(frames)} states; drawing every {every}th to stay within --max-frames {a.max_frames}")
+        print(f"note: {len(frames)} states; drawing one in {every} to stay within --max-frames {a.max_frames}")
     keep = [f for i, f in enumerate(frames) if i % every == 0 or f.outcome is not None]
-    view = FrameView(road, cfg)
-    r = Renderer(view, view=a.view)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(output)}.", suffix=".part",
-                               dir=os.path.dirname(os.path.abspath(output)))
+    folder = os.path.dirname(os.path.abspath(output))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(output)}.", suffix=".part", dir=folder)
+    except OSError as exc:
+        raise ValueError(f"cannot write in {folder}: {exc.strerror}") from None
     os.close(fd)
     gif = GifWriter(tmp, _frame_dt(frames, cfg.dt) * every)
+    view = FrameView(road, cfg)
+    r = Renderer(view, view=a.view)
     try:   # the GIF appears complete or not at all: an existing file is replaced only at the end
         for f in tqdm(keep, desc="rendering", unit=" frame", disable=None, leave=False):
             view.show(f.ego, f.svs, f.goal, f.route, f.time_s, f.task, f.outcome)
@@ -220,7 +223,7 @@ def build_parser():
     sp.set_defaults(func=cmd_episode)
     sp = sub.add_parser("render-bag", help="draw a recording (MCAP file or rosbag2 directory) as GIF")
     sp.add_argument("bag", help="MCAP file or rosbag2 directory (any ROS 2 writer)")
-    sp.add_argument("-o", "--output", default="", help="GIF path (default: the bag's name with .gif)")
+    sp.add_argument("-o", "--output", default="", help="GIF path (default: the bag's name with .gif, here)")
     sp.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     sp.add_argument("--map", default="dual_lane_4way", help=f"map the recording ran on {available_maps()} "
                     "or a YAML path")
