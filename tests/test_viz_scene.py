@@ -28,6 +28,14 @@ def _yaw(q):
     return 2.0 * math.atan2(q.z, q.w)
 
 
+def test_frames_are_the_contracts():
+    I = pytest.importorskip("bimacppo_sim.ros.interfaces")
+    assert (S.FRAME_MAP, S.FRAME_EGO, S.FRAME_REFERENCE) == (I.FRAME_MAP, I.FRAME_BASE, I.FRAME_REFERENCE)
+    for yaw in (-3.0, -0.4, 0.0, 2.5, math.pi):   # the same yaw-only quaternion as the messages carry
+        q, r = decode(S.yaw_quaternion(yaw)), I.yaw_to_quaternion(yaw)
+        assert (q.x, q.y, q.z, q.w) == pytest.approx((r.x, r.y, r.z, r.w))
+
+
 def test_vehicles_update_replaces_all_entities_with_ev_and_svs():
     ego = [1.0, -2.0, 3.5, 0.7]
     svs = [[10.0, 1.75, 5.0, -1.2], [-3.0, 20.0, 0.0, 3.0]]

@@ -29,6 +29,8 @@ from typing import Mapping, Optional, Sequence
 import numpy as np
 from foxglove import messages as fm
 
+# interfaces.FRAME_MAP / FRAME_BASE / FRAME_REFERENCE, which this module cannot import (rclpy);
+# tests/test_viz_scene.py holds them equal
 FRAME_MAP = "map"
 FRAME_EGO = "base_link"
 FRAME_REFERENCE = "x_imr"
