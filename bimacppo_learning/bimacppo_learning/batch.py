@@ -32,7 +32,7 @@ from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, observe, step_reward
 from bimacppo_sim import TASKS, Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
-from bimacppo_sim.drivers import junction_threatened, stop_line_distance
+from bimacppo_sim.drivers import junction_distance, junction_threatened
 
 RESET_OPTIONS = ("n_sv", "task", "scenario_seed", "n_slow")
 SEED_HIGH = 2 ** 31 - 1
@@ -92,12 +92,13 @@ class IntersectionBatch:
         self.lane_changes = np.zeros(B, np.int64)
         self.mpc_failures = np.zeros(B, np.int64)
         self.running = np.zeros(B, bool)      # reset and not yet finished
-        # whether the EV entered while the junction was threatened: the yield rule's threat test and
-        # stop line on the true world state (reported per episode; the reward.threat_entry shaping
-        # term pays on it). Crossing the line happens once per episode.
+        # whether the EV entered the junction box while it was threatened: the yield rule's threat
+        # test on the true world state (reported per episode; the reward.threat_entry shaping term
+        # pays on it). The box edge, not the stop line: the yield rule itself stops with its
+        # bumper at or just over the line and enters only when clear. It happens once per episode.
         self._threat_cfg = DriverConfig.load()
-        self.crossed = np.zeros(B, bool)       # EV front past its stop line
-        self.threat_entries = np.zeros(B, bool)   # ... and it crossed while the junction was threatened
+        self.crossed = np.zeros(B, bool)       # EV front inside the junction box
+        self.threat_entries = np.zeros(B, bool)   # ... and it entered while the junction was threatened
         self._X0 = np.zeros((B, 4))
         self.mpc_seconds = 0.0                # time spent in the NMPC: where training time goes
 
@@ -205,7 +206,7 @@ class IntersectionBatch:
                 if not self.crossed[i]:
                     threatened = junction_threatened(self.worlds[i], tcfg)
                 res = self.worlds[i].step(sol.u[i])
-                if not self.crossed[i] and stop_line_distance(self.worlds[i], tcfg) <= 0.0:
+                if not self.crossed[i] and junction_distance(self.worlds[i]) <= 0.0:
                     self.crossed[i] = True
                     if threatened:        # the state the crossing tick was commanded from
                         self.threat_entries[i] = True

@@ -40,16 +40,21 @@ def junction_threatened(world, cfg: DriverConfig) -> bool:
     return False
 
 
-def stop_line_distance(world, cfg: DriverConfig, y: float | None = None) -> float:
-    """Distance from the EV's front bumper to its stop line, ``stop_margin`` before the junction
-    box (the EV approaches from the south); +inf on a map without a junction."""
+def junction_distance(world, y: float | None = None) -> float:
+    """Distance from the EV's front bumper to the edge of the junction box (the EV approaches
+    from the south); +inf on a map without a junction."""
     H = getattr(world.road, "H", None)
     if H is None:
         return math.inf
     if y is None:
         y = world.ego_tuple()[1]
-    return (-H - cfg.stop_margin) - (y + 0.5 * world.cfg.vehicle.length)
+    return -H - (y + 0.5 * world.cfg.vehicle.length)
 
+
+def stop_line_distance(world, cfg: DriverConfig, y: float | None = None) -> float:
+    """Distance from the EV's front bumper to its stop line, ``stop_margin`` before the junction
+    box; +inf on a map without a junction."""
+    return junction_distance(world, y) - cfg.stop_margin
 
 class GoDriver:
     def __init__(self, world, config: DriverConfig | None = None):
