@@ -35,10 +35,13 @@ def _plain(msg):
     return msg
 
 
-def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, odom_type=None, odom_frame=None):
-    """Episodes of a World driven by the 'go' driver, as the graph publishes them; returns
-    (stamps of the states, outcomes, EV states)."""
-    w = World(load_map(MAP))
+def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, odom_type=None, odom_frame=None,
+               map_id=MAP):
+    """Episodes of a World driven by the 'go' driver, published as the world node does (in the
+    fixed map frame: moved by the map file's pose, if any); returns (stamps of the states,
+    outcomes, EV states in the map's own frame)."""
+    w = World(load_map(map_id))
+    fr = w.road.frame
     stamps, outcomes, egos = [], [], []
     k = [0]
     with open(path, "wb") as f:
@@ -58,8 +61,8 @@ def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, o
             stamp = k[0] * 100_000_000
             ego = world.ego
             if len(stamps) == 0 or world.time == 0.0:
-                put(I.TOPIC_GOAL, I.goal_to_pose(world.goal, stamp), stamp)
-            odom = I.state_to_odometry(ego, stamp)
+                put(I.TOPIC_GOAL, I.goal_to_pose(fr.poses_to_world(world.goal), stamp), stamp)
+            odom = I.state_to_odometry(fr.states_to_world(ego), stamp)
             if odom_frame:
                 odom.header.frame_id = odom_frame
             if odom_type:
@@ -68,11 +71,12 @@ def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, o
             put(I.TOPIC_EGO_ODOM, odom, stamp)
             if len(stamps) % 7 == 0:   # a lockstep re-send: the same state twice
                 put(I.TOPIC_EGO_ODOM, odom, stamp)
-            svs = world.sv_states()
+            svs = fr.states_to_world(world.sv_states())
             put(I.TOPIC_OBJECTS, I.svs_to_objects([f"sv{i}" for i in range(len(svs))], svs, stamp), stamp)
-            put(I.TOPIC_MARKERS, I.world_markers(ego, svs, world.goal, world.route, stamp), stamp)
+            put(I.TOPIC_MARKERS, I.world_markers(fr.states_to_world(ego), svs, fr.poses_to_world(world.goal),
+                                                 fr.poses_to_world(world.route), stamp), stamp)
             x_imr = ego + np.array([2.0 * np.cos(ego[3]), 2.0 * np.sin(ego[3]), 0.5, 0.0])
-            put(I.TOPIC_REFERENCE, I.reference_to_odometry(x_imr, stamp), stamp)
+            put(I.TOPIC_REFERENCE, I.reference_to_odometry(fr.states_to_world(x_imr), stamp), stamp)
             stamps.append(stamp)
             egos.append(ego)
 
@@ -300,3 +304,31 @@ def test_progress_bars_on_a_terminal_only(bag, tmp_path):
     assert b"rendering:" in shown and b"frame/s" in shown, shown[-500:]
     piped = subprocess.run([*cmd, "-o", str(tmp_path / "pipe.gif")], capture_output=True, text=True, timeout=120)
     assert piped.returncode == 0 and "rendering" not in piped.stderr, piped.stderr
+
+
+def test_posed_map_renders_like_the_same_map_at_the_origin(tmp_path, capsys):
+    """A map file's pose moves the recorded states (the world publishes in the fixed map frame);
+    render-bag draws them in the map's own frame, on its road: the picture is the unposed one."""
+    import yaml
+
+    from bimacppo_sim.road import MAP_DIR
+    spec = yaml.safe_load((MAP_DIR / f"{MAP}.yaml").read_text())
+    spec["pose"] = {"x": 412.0, "y": -318.5, "heading": 0.6}
+    posed = tmp_path / "posed.yaml"
+    posed.write_text(yaml.safe_dump(spec))
+    a, b = tmp_path / "origin.mcap", tmp_path / "posed.mcap"
+    _write_bag(a)
+    _write_bag(b, map_id=str(posed))
+    ga, gb = tmp_path / "origin.gif", tmp_path / "posed.gif"
+    assert main(["render-bag", str(a), "-o", str(ga), "--map", MAP, "--every", "10"]) == 0
+    assert main(["render-bag", str(b), "-o", str(gb), "--map", str(posed), "--every", "10"]) == 0
+    fa, fb = _gif(ga), _gif(gb)
+    assert len(fa) == len(fb) >= 5
+    for (x, _), (y, _) in zip(fa, fb):
+        assert _ev_centre(x) == pytest.approx(_ev_centre(y), abs=1.0)
+        assert np.mean(np.any(x != y, axis=2)) < 0.01      # at most sub-pixel edges differ
+    # on the unposed map the posed recording lies 500 m away: no EV in view
+    gc = tmp_path / "wrong_map.gif"
+    assert main(["render-bag", str(b), "-o", str(gc), "--map", MAP, "--every", "10"]) == 0
+    with pytest.raises(AssertionError, match="EV not drawn"):
+        _ev_centre(_gif(gc)[0][0])

@@ -177,6 +177,27 @@ def test_live_view_serves_the_graph_topics(node):
     assert (cmd["a"], cmd["delta"]) == pytest.approx((0.5, -0.02)) and cmd["horizon_a"] == pytest.approx([0.5, 0.4])
 
 
+def test_road_lanes_are_placed_by_the_map_pose(tmp_path):
+    import yaml
+
+    from bimacppo_sim import load_map
+    from bimacppo_sim.road import MAP_DIR
+    from bimacppo_viz.ros.live_view import road_lanes
+    plain = load_map("single_lane_4way")
+    spec = yaml.safe_load((MAP_DIR / "single_lane_4way.yaml").read_text())
+    spec["pose"] = {"x": 412.0, "y": -318.5, "heading": 0.6}
+    (tmp_path / "posed.yaml").write_text(yaml.safe_dump(spec))
+    posed = load_map(str(tmp_path / "posed.yaml"))
+    a, b = road_lanes(plain), road_lanes(posed)
+    assert [k for k, _ in a] == [ln.kind for ln in plain.lanes.values()] == [k for k, _ in b]
+    for (_, pa), ln in zip(a, plain.lanes.values()):
+        assert np.allclose(pa, ln.points[:, :2])                 # at the origin: the map's own points
+    c, s = np.cos(0.6), np.sin(0.6)
+    for (_, pa), (_, pb) in zip(a, b):
+        moved = np.c_[412.0 + c * pa[:, 0] - s * pa[:, 1], -318.5 + s * pa[:, 0] + c * pa[:, 1]]
+        assert np.allclose(pb, moved)
+
+
 def test_port_in_use_and_bad_parameters_are_one_line_errors():
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))

@@ -72,6 +72,17 @@ def _frame_dt(frames, fallback: float) -> float:
     return float(np.median(d)) if len(d) else fallback
 
 
+def _in_map_frame(frame, f):
+    """A recorded frame's EV, SVs, goal and route in the map's own frame (where the Renderer draws
+    the road): a map file's pose places that frame in the fixed ``map`` frame the messages use."""
+    import numpy as np
+    route = None
+    if f.route is not None:
+        route = frame.poses_to_map(np.c_[f.route[:, :2], np.zeros(len(f.route))])[:, :2]
+    goal = None if f.goal is None else frame.poses_to_map(f.goal)
+    return frame.states_to_map(f.ego), frame.states_to_map(f.svs), goal, route
+
+
 def cmd_render_bag(a):
     from tqdm import tqdm
 
@@ -108,8 +119,8 @@ def cmd_render_bag(a):
     r = Renderer(view, view=a.view)
     try:   # the GIF appears complete or not at all: an existing file is replaced only at the end
         for f in tqdm(keep, desc="rendering", unit=" frame", disable=None, leave=False):
-            view.show(f.ego, f.svs, f.goal, f.route, f.time_s, f.task, f.outcome)
-            gif.append(r.rgb_array(x_imr=f.x_imr))
+            view.show(*_in_map_frame(road.frame, f), time=f.time_s, task=f.task, outcome=f.outcome)
+            gif.append(r.rgb_array(x_imr=None if f.x_imr is None else road.frame.states_to_map(f.x_imr)))
         gif.close()
         umask = os.umask(0)
         os.umask(umask)

@@ -13,6 +13,7 @@ default must not expose the graph to the network); a port already in use is a on
 """
 from __future__ import annotations
 
+import numpy as np
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.validate_topic_name import validate_topic_name
@@ -42,6 +43,16 @@ TOPIC_PARAMETERS = {
     "markers_topic": I.TOPIC_MARKERS,
     "result_topic": I.TOPIC_RESULT,
 }
+
+
+def road_lanes(road) -> list:
+    """``[(kind, (N, 2) centreline)]`` of a map's lanes in the fixed ``map`` frame: a map file's
+    pose places the map's own frame (where its geometry is built) there, as the world publishes."""
+    out = []
+    for ln in road.lanes.values():
+        pts = np.asarray(ln.points, dtype=float)[:, :2]
+        out.append((ln.kind, road.frame.poses_to_world(np.c_[pts, np.zeros(len(pts))])[:, :2]))
+    return out
 
 
 class LiveViewNode(Node):
@@ -87,7 +98,7 @@ class LiveViewNode(Node):
                               f"{one_line(exc).replace('FoxgloveError: ', '')}") from None
         self.url = f"ws://{host}:{self.server.port}"
         if road is not None:
-            self.scene.on_road([(ln.kind, ln.points) for ln in road.lanes.values()])
+            self.scene.on_road(road_lanes(road))
         self.create_timer(LATCHED_RESEND_S, self.scene.resend_latched)
 
         def sub(param, msg_type, qos, fn):
