@@ -1,6 +1,7 @@
 """Launch the whole graph as separate processes (needs a full ROS 2 install with launch_ros).
 
     ros2 launch bimacppo_planner bimacppo.launch.py episodes:=10 record:=true
+    ros2 launch bimacppo_planner bimacppo.launch.py live_view:=true   # + Foxglove on ws://127.0.0.1:8765
 
 Parameters come from each package's config/*.params.yaml; use_sim_time follows the
 world's /clock. The one-process equivalent is ``ros2 run bimacppo_planner bimacppo-graph``.
@@ -26,6 +27,7 @@ def generate_launch_description():
         DeclareLaunchArgument("episodes", default_value="10"),
         DeclareLaunchArgument("record", default_value="true"),
         DeclareLaunchArgument("mode", default_value="lockstep"),
+        DeclareLaunchArgument("live_view", default_value="false"),
         Node(package="bimacppo_sim", executable="world_node", name="world", output="screen",
              parameters=[_params("bimacppo_sim", "world.params.yaml"),
                          {"autostart": False, "mode": LaunchConfiguration("mode")}]),
@@ -38,4 +40,6 @@ def generate_launch_description():
         Node(package="bimacppo_sim", executable="mcap_recorder", name="mcap_recorder", output="screen",
              parameters=[_params("bimacppo_sim", "world.params.yaml")],
              condition=IfCondition(LaunchConfiguration("record"))),
+        Node(package="bimacppo_viz", executable="live_view", name="live_view", output="screen",
+             parameters=[sim], condition=IfCondition(LaunchConfiguration("live_view"))),
     ])
