@@ -591,7 +591,9 @@ def liveness(policy_file, tmp_path_factory):
     procs = {k: F.start(*a, log=logs[k], env=env) for k, a in args.items()}
     g = dict(watcher=w, procs=procs, args=args, logs=logs, dir=d, node=node, env=env)
     g["pubs"] = {t: node.create_publisher(typ, t, F.QOS.get(t, I.STATE_QOS)) for t, typ in INPUT_TYPES.items()}
-    g["up"] = w.progress(ticks=5, timeout=90)
+    # four processes importing torch, numba and rclpy at once: on a 2-core box shared with
+    # training jobs (load ~10) that took more than 90 s
+    g["up"] = w.progress(ticks=5, timeout=240)
     yield g
     F.stop(list(procs.values()))
     for f in logs.values():
