@@ -79,6 +79,23 @@ def test_evaluate_protocol_table_and_csv(trained, tmp_path, capsys):
         assert total == pytest.approx(100.0)
 
 
+def test_evaluate_takes_an_mpc_config_and_refuses_a_broken_one(tmp_path, capsys):
+    from bimacppo_learning.evaluate import evaluate
+    from conftest import REPO
+    unbounded = REPO / "bimacppo_mpc/bimacppo_mpc/config/mpc_unbounded.yaml"
+    kw = dict(map_id="dual_lane_4way", n_svs=[0], tasks=[1], episodes=1, workers=1, random_row=False)
+    bounded = evaluate(None, **kw)[0].comfort
+    free = evaluate(None, mpc_config=unbounded, **kw)[0].comfort
+    # the same policy and scenario with another controller: the applied commands differ
+    assert (bounded.ticks, bounded.jerk_sq) != (free.ticks, free.jerk_sq)
+    bad = tmp_path / "mpc.yaml"
+    bad.write_text("steer_rate_maxx: 1.0\n")
+    assert evaluate_main(["--episodes", "1", "--n-sv", "0", "--tasks", "left", "--no-random-row",
+                          "--mpc-config", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "steer_rate_maxx" in err and "Traceback" not in err
+
+
 def test_evaluate_rejects_corrupt_policy(tmp_path, capsys):
     bad = tmp_path / "policy.pt"
     bad.write_bytes(b"\x00" * 100)

@@ -212,6 +212,9 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--env-config", type=Path, default=None,
                    help="YAML replacing the env config stored in the policy file (default: that one)")
     p.add_argument("--no-random-row", action="store_true", help="skip the random-policy baseline rows")
+    p.add_argument("--mpc-config", type=Path, default=None,
+                   help="YAML overlaying bimacppo_mpc/config/mpc.yaml (e.g. mpc_unbounded.yaml for a policy "
+                        "trained without the rate bounds); default: the packaged one")
     p.add_argument("--seed-set", choices=("validation", "test"), default="test",
                    help="scenario seeds: validation (for choosing configs, checkpoints, variants) or test "
                         "(reporting only); disjoint sets, default test")
@@ -255,7 +258,7 @@ def evaluate_main(argv=None) -> int:
     try:
         results = evaluate(args.policy, args.map, args.n_sv, tasks, args.episodes, args.workers, args.mpc,
                            progress, env_config=args.env_config, random_row=not args.no_random_row,
-                           seed_set=args.seed_set)
+                           seed_set=args.seed_set, mpc_config=args.mpc_config)
     except (CheckpointError, EvaluationError, ConfigError) as exc:
         return fail(prog, exc)
     finally:

@@ -46,12 +46,13 @@ class IntersectionEnv(gym.Env):
 
     def __init__(self, map_id: str = "dual_lane_4way", config: EnvConfig | str | os.PathLike | Mapping | None = None,
                  mpc_solver: str = "fast", render_mode: str | None = None,
-                 world_config=None, tasks: tuple | None = None, slow_svs: int = 0):
+                 world_config=None, tasks: tuple | None = None, slow_svs: int = 0, mpc_config=None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         config = as_env_config(config)
         self._core = IntersectionBatch(1, map_id=map_id, config=config, mpc_solver=mpc_solver,
-                                       world_config=world_config, tasks=tasks, slow_svs=slow_svs)
+                                       world_config=world_config, tasks=tasks, slow_svs=slow_svs,
+                                       mpc_config=mpc_config)
         self.cfg = self._core.cfg
         self.road = self._core.road
         self.world = self._core.worlds[0]

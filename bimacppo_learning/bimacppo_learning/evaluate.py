@@ -159,13 +159,16 @@ def _materialise(spec: tuple, env_config) -> tuple[str, Any]:
 
 
 def _run_cell(job: tuple) -> tuple:
-    spec, env_config, map_id, task, n_sv, episodes, mpc_solver, seed_set = job
+    spec, env_config, map_id, task, n_sv, episodes, mpc_solver, seed_set, mpc_config = job
+    from bimacppo_mpc import MPCConfig
+
     from .env import IntersectionEnv
 
     label, policy = _materialise(spec, env_config)
     actor = as_actor(policy)
     begin = getattr(policy, "begin_episode", None)
-    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver)
+    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver,
+                          mpc_config=None if mpc_config is None else MPCConfig.load(mpc_config))
     nvec = tuple(int(n) for n in env.cfg.nvec)
     counts: Counter = Counter()
     returns = []
@@ -313,12 +316,14 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
              tasks: Iterable[int] = (0, 1, 2), episodes: int = 100, workers: int = 2,
              mpc_solver: str = "fast", progress: Callable | None = None, *,
              env_config: Any = None, random_row: bool = True, random_seed: int = 0,
-             seed_set: str = "test") -> list[CellResult]:
+             seed_set: str = "test", mpc_config: str | None = None) -> list[CellResult]:
     """Run the protocol; see the module docstring.
 
     ``env_config`` (EnvConfig, YAML path or dict) replaces the policy's own (a policy file's
     stored one, else the packaged env.yaml). ``random_row`` adds the random policy's cells
     (``policy == RANDOM``) on the same env config and scenarios; they are cached per process.
+    ``mpc_config`` (a YAML overlaying the packaged mpc.yaml) sets the NMPC of every cell: a
+    policy is evaluated with the controller it was trained with.
     Objects that cannot be pickled run in this process whatever ``workers`` says (a warning).
     ``progress(cell)`` is called as each cell finishes. Returns the policy's cells, then the
     random ones, each sorted by (task, N_sv).
@@ -333,21 +338,27 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
     check_cells(map_id, n_svs, tasks)
     spec, _, cfg = resolve_policy(policy, env_config)
     cells = [(t, n) for t in tasks for n in n_svs]
-    jobs = [(spec, cfg, map_id, t, n, int(episodes), mpc_solver, seed_set) for t, n in cells]
+    if mpc_config is not None:
+        from bimacppo_mpc import MPCConfig
+        MPCConfig.load(mpc_config)          # a bad file fails here, once, not in every worker
+        mpc_config = str(mpc_config)
+    jobs = [(spec, cfg, map_id, t, n, int(episodes), mpc_solver, seed_set, mpc_config) for t, n in cells]
     results: list[CellResult] = []
     if random_row:
         for t, n in cells:
-            key = json.dumps([map_id, cfg.to_dict(), t, n, int(episodes), mpc_solver, int(random_seed), seed_set])
+            key = json.dumps([map_id, cfg.to_dict(), t, n, int(episodes), mpc_solver, int(random_seed), seed_set,
+                              mpc_config])
             if key in _RANDOM_CACHE:
                 results.append(_RANDOM_CACHE[key])
             else:
-                jobs.append(((RANDOM, int(random_seed)), cfg, map_id, t, n, int(episodes), mpc_solver, seed_set))
+                jobs.append(((RANDOM, int(random_seed)), cfg, map_id, t, n, int(episodes), mpc_solver, seed_set,
+                             mpc_config))
 
     def collect(r: tuple) -> None:
         cell = CellResult(r[1], r[2], r[3], r[4], r[0], r[5], r[6], r[7])
         if cell.policy == RANDOM:
             _RANDOM_CACHE[json.dumps([map_id, cfg.to_dict(), cell.task, cell.n_sv, int(episodes), mpc_solver,
-                                      int(random_seed), seed_set])] = cell
+                                      int(random_seed), seed_set, mpc_config])] = cell
         results.append(cell)
         if progress:
             progress(cell)
