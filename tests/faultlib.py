@@ -121,10 +121,15 @@ class Watcher:
         return bool(until and until())
 
     def progress(self, ticks: int = 3, timeout: float = 20.0, after: int = -1) -> bool:
-        """The loop answers ``ticks`` more world states (new command stamps, stamped after
-        ``after``) within timeout."""
-        n0 = sum(1 for st in self.answered if st > after)
-        return self.spin(timeout, lambda: sum(1 for st in self.answered if st > after) >= n0 + ticks)
+        """The loop answers ``ticks`` world states published from now on (distinct stamps,
+        stamped after ``after``) within timeout. Counted among the states of this window, not
+        against every stamp ever answered: a restarted world publishes its old stamps again."""
+        n_cmd, n_st = len(self.commands), len(self.speeds)
+
+        def answered():
+            states = {st for _, st, _ in self.speeds[n_st:]}
+            return len({st for _, st, *_ in self.commands[n_cmd:] if st in states and st > after})
+        return self.spin(timeout, lambda: answered() >= ticks)
 
 
 def start(*args, log=None, env=None):
