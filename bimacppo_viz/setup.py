@@ -20,6 +20,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         ("share/" + PACKAGE, ["package.xml"]),
         ("share/" + PACKAGE + "/layouts", glob(PACKAGE + "/layouts/*.json")),
+        ("share/" + PACKAGE + "/config", glob("config/*.yaml")),
     ],
     install_requires=["numpy", "foxglove-sdk"],
     zip_safe=False,

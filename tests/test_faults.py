@@ -346,6 +346,10 @@ def test_recorder_keeps_everything_on_clean_stop(graph):
     # only keep what was delivered, so let delivery finish before the SIGINT
     w.spin(1.0)
     t_to = time.monotonic()
+    # the foreign String publisher on the markers topic is found by the recorder's periodic
+    # discovery, which on a loaded machine can come after the commands it already records
+    rec_log = graph["dir"] / "recorder.log"
+    w.spin(60, lambda: f"{I.TOPIC_MARKERS}: offered as" in rec_log.read_text().rsplit("recording to ", 1)[-1])
     rec = graph["procs"]["recorder"]
     F.stop([rec])
     report = mcap_io.ReadReport()

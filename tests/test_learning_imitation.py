@@ -18,7 +18,12 @@ EXT = EnvConfig.load(__import__("pathlib").Path(__import__("bimacppo_learning").
 
 @pytest.fixture(scope="module")
 def env():
-    return IntersectionEnv(config=EXT)
+    # the teacher's actions were tuned with the NMPC without rate bounds, the controller the
+    # shipped clone was made and is run with (policies/README.md)
+    from bimacppo_mpc import MPCConfig
+    from conftest import REPO
+    return IntersectionEnv(config=EXT, mpc_config=MPCConfig.load(
+        REPO / "bimacppo_mpc/bimacppo_mpc/config/mpc_unbounded.yaml"))
 
 
 def test_teacher_crosses_busy_junctions_without_collision(env):

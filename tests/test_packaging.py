@@ -109,7 +109,7 @@ def test_launch_file_starts_installed_executables_with_existing_params(colcon_in
     declared = {a.args[0] for a in actions if isinstance(a, mods["launch.actions"].DeclareLaunchArgument)}
     nodes = [a for a in actions if isinstance(a, mods["launch_ros.actions"].Node)]
     assert {n.kwargs["executable"] for n in nodes} == {
-        "world_node", "planner_node", "controller_node", "curriculum_node", "mcap_recorder"}
+        "world_node", "planner_node", "controller_node", "curriculum_node", "mcap_recorder", "live_view"}
     lc = mods["launch.substitutions"].LaunchConfiguration
 
     def used(obj):

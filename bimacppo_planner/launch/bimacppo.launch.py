@@ -41,5 +41,6 @@ def generate_launch_description():
              parameters=[_params("bimacppo_sim", "world.params.yaml")],
              condition=IfCondition(LaunchConfiguration("record"))),
         Node(package="bimacppo_viz", executable="live_view", name="live_view", output="screen",
-             parameters=[sim], condition=IfCondition(LaunchConfiguration("live_view"))),
+             parameters=[_params("bimacppo_viz", "live_view.params.yaml"), sim],
+             condition=IfCondition(LaunchConfiguration("live_view"))),
     ])
