@@ -127,6 +127,7 @@ class McapRecorder(Node):
         self._schemas: Dict[str, int] = {}
         self._channels: Dict[str, int] = {}
         self._subs = {}
+        self._type_warned = set()   # (topic, types) already warned about: once each, whenever it appears
         self._seq: Dict[int, int] = {}
         self._closed = False
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -146,18 +147,23 @@ class McapRecorder(Node):
         if self._closed:
             return
         for topic, types in self.get_topic_names_and_types():
-            if topic in self._subs or not self._selected(topic):
+            if not self._selected(topic) or (topic in self._subs and topic not in I.TOPIC_TYPES):
                 continue
             # a topic of the contract is recorded with its documented type only (whichever
-            # publisher appeared first); another topic needs a single type to be recorded
+            # publisher appeared first), and a publisher of another type is warned about also
+            # when it appears after the subscription; another topic needs a single type
             type_name = I.TOPIC_TYPES.get(topic, types[0] if len(types) == 1 else None)
             others = [t for t in types if t != type_name]
-            if others:
+            key = (topic, tuple(sorted(types)))
+            if others and key not in self._type_warned:
+                self._type_warned.add(key)
                 if type_name is None:
-                    self.get_logger().warning(f"{topic}: several types {types}, not recorded", once=True)
-                    continue
-                self.get_logger().warning(f"{topic}: offered as {types}; recording the documented "
-                                          f"{type_name}, not {others}", once=True)
+                    self.get_logger().warning(f"{topic}: several types {types}, not recorded")
+                else:
+                    self.get_logger().warning(f"{topic}: offered as {types}; recording the documented "
+                                              f"{type_name}, not {others}")
+            if topic in self._subs or type_name is None:
+                continue
             if type_name not in types:
                 continue                 # only other types so far: wait for the documented one
             infos = [i for i in self.get_publishers_info_by_topic(topic) if i.topic_type == type_name]
