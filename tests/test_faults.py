@@ -667,7 +667,10 @@ def test_bogus_result_one_tick_ahead_is_followed_by_a_resync(liveness):
     # one warning per stalled tick: two when the result reached one node only after it had
     # answered the tick (then the other node stalls on it, the first on the next tick)
     warned = _warned_ticks(g, warn)[len(warned0):]
-    held = moving and resyncs["planner"] == 1 and resyncs["controller"] <= 1 and not _alive(g)
+    # which node stalls depends on delivery order: a node the result reached only after it had
+    # answered the tick never stalls on it; so at least one resyncs, and none more than once
+    held = (moving and 1 <= resyncs["planner"] + resyncs["controller"]
+            and max(resyncs.values()) <= 1 and not _alive(g))
     LEDGER.record("liveness", "result one tick after the newest state -> planner and controller resync", held,
                   f"progress={moving} delay={delay:.1f}s resync_lines={resyncs} attempts={attempt + 1}")
     once = moving and 1 <= len(warned) <= 2 and len(set(warned)) == len(warned)
