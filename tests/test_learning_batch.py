@@ -166,3 +166,50 @@ def test_threat_entry_shaping_changes_returns_only_and_only_on_threatened_entrie
             assert te1 and te2 and not tr1 and not tr2
             assert i1["episode_return"] - i2["episode_return"] == pytest.approx(-7.0 * i1["threat_entry"])
     assert any(flags) and not all(flags), flags      # both kinds of episode occurred
+
+
+
+def test_idle_clear_shaping_prices_standing_only_while_the_junction_is_clear(monkeypatch):
+    """The same scenarios and actions with and without the idle-clear term: the trajectories are
+    the same, and the return is lower by exactly |idle_clear| / decision_every per tick that began
+    with the EV slower than idle_speed while the yield rule's test was false (or the junction was
+    passed). A stop-at-WP0 policy comes to a stand and stays, so it stands both while threatened
+    and while clear."""
+    import bimacppo_learning.batch as batch_mod
+
+    base = EXT.to_dict()
+    price = -0.3
+    shaped = EnvConfig.from_dict({**base, "reward": {**base["reward"], "idle_clear": price, "idle_speed": 1.0}})
+    plain = EnvConfig.from_dict(base)
+    every = shaped.action.decision_every
+    stop = np.array([[0, 0, 1]])        # nearest waypoint at 0 m/s
+    real_test = batch_mod.junction_threatened
+    kinds = {"clear": 0, "threatened": 0}
+    for k in range(4):
+        runs = []
+        for cfg in (shaped, plain):
+            log = []                                      # (speed, threatened) at the start of each tick
+            b = IntersectionBatch(1, config=cfg)
+            b.reset(0, seed=k, options={"n_sv": 3, "task": k % 3})
+
+            def test(world, tcfg, log=log):
+                out = real_test(world, tcfg)
+                log.append([world.ego_tuple()[2], out])
+                return out
+
+            monkeypatch.setattr(batch_mod, "junction_threatened", test)
+            for _ in range(60):
+                _, _, te, tr, _ = b.step(stop)
+                if te[0] or tr[0]:
+                    break
+            runs.append((b.returns[0], np.array(log, float), b.worlds[0].ego_tuple()))
+        (r1, log1, ego1), (r2, log2, ego2) = runs
+        np.testing.assert_array_equal(ego1, ego2)
+        np.testing.assert_array_equal(log1, log2)
+        assert not b.crossed[0]                       # the test sees every tick before the junction
+        standing = log1[:, 0] < 1.0
+        idle_clear = int(np.sum(standing & (log1[:, 1] == 0.0)))
+        kinds["clear"] += idle_clear
+        kinds["threatened"] += int(np.sum(standing & (log1[:, 1] == 1.0)))
+        assert r1 - r2 == pytest.approx(price / every * idle_clear, abs=1e-9)
+    assert kinds["clear"] > 0 and kinds["threatened"] > 0, kinds

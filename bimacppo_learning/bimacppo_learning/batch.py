@@ -205,6 +205,8 @@ class IntersectionBatch:
                 threatened = False
                 if not self.crossed[i]:
                     threatened = junction_threatened(self.worlds[i], tcfg)
+                if rcfg.idle_clear != 0.0 and not threatened and X0[i, 2] < rcfg.idle_speed:
+                    shaping[i] += rcfg.idle_clear / acfg.decision_every
                 res = self.worlds[i].step(sol.u[i])
                 if not self.crossed[i] and junction_distance(self.worlds[i]) <= 0.0:
                     self.crossed[i] = True
