@@ -1,218 +1,226 @@
-"""Typed, validated configuration for the world, loaded from the package's YAML files.
+"""Typed, validated configuration of the world, over the package's YAML files.
 
-Every tunable number of the simulator lives in ``bimacppo_sim/config/*.yaml``; the
-dataclasses below only describe shape and admissible ranges so that a typo or an
-out-of-range value fails loudly (naming file and key) instead of silently changing
-the experiment.
+Every tunable number of the simulator lives in ``bimacppo_sim/config/*.yaml`` (world, vehicle,
+sv, drivers; why each value was chosen is in docs/world.md). The mechanism is
+``bimacppo_common.config``: the packaged files are the only place a default is written
+(``WorldConfig()`` is the packaged world, vehicle and SV model), a user's file lists only what
+it changes, and an unknown key (with the nearest known one suggested), a wrong type or an
+out-of-range value is a ``ConfigError`` (a ``ValueError``) naming the file and the dotted key,
+because a typo would otherwise silently change the experiment.
 """
 from __future__ import annotations
 
-import dataclasses
-import math
 import pathlib
-import typing
-from dataclasses import dataclass, field
+from typing import Mapping
 
-import yaml
+from bimacppo_common import config
+from bimacppo_common.config import ConfigError, Packaged, config_class, invalid, setting
 
-CONFIG_DIR = pathlib.Path(__file__).resolve().parent / "config"
+__all__ = ["WorldConfig", "VehicleConfig", "SVConfig", "StylesConfig", "StyleConfig", "DriverConfig",
+           "ConfigError", "STYLES", "CONFIG_DIR"]
+
+WORLD_YAML = Packaged("bimacppo_sim", "config/world.yaml")
+VEHICLE_YAML = Packaged("bimacppo_sim", "config/vehicle.yaml")
+SV_YAML = Packaged("bimacppo_sim", "config/sv.yaml")
+DRIVERS_YAML = Packaged("bimacppo_sim", "config/drivers.yaml")
+CONFIG_DIR = pathlib.Path(WORLD_YAML.path).parent
 STYLES = ("aggressive", "moderate", "conservative")
 
 
-def _rng(lo=None, hi=None, **kw):
-    return field(metadata={"min": lo, "max": hi, **kw})
+class _Nested(Packaged):
+    """A mapping nested deeper than one section in a packaged file (``styles.<style>`` of
+    sv.yaml): each style has defaults of its own under the same keys."""
+
+    def __init__(self, outer: Packaged, *path: str):
+        super().__init__(outer.package, outer.resource)
+        self._outer, self._path = outer, path
+
+    def data(self) -> dict:
+        return self._outer.data()
+
+    def section(self, name: str | None) -> Mapping:
+        keys = (*self._path, *((name,) if name else ()))
+        data: Mapping = self.data()
+        for i, k in enumerate(keys):
+            if not isinstance(data.get(k), Mapping):
+                raise ConfigError("packaged defaults must be a mapping", source=self.path, key=keys[:i + 1])
+            data = data[k]
+        return data
 
 
-@dataclass(frozen=True)
+def _order(cfg, lo: str, hi: str) -> None:
+    """The cross-key rule ``lo <= hi`` of a [min, max] pair."""
+    if getattr(cfg, lo) > getattr(cfg, hi):
+        raise invalid(hi, f"must be >= key '{lo}' ({getattr(cfg, lo)}), got {getattr(cfg, hi)}")
+
+
+@config_class(VEHICLE_YAML)
 class VehicleConfig:
     """EV geometry and physical input limits (Tesla Model 3, paper §II-B)."""
-    wheelbase: float = _rng(0.5, 10.0)
-    length: float = _rng(0.5, 20.0)
-    width: float = _rng(0.3, 5.0)
-    a_min: float = _rng(-20.0, 0.0)
-    a_max: float = _rng(0.0, 20.0)
-    delta_max: float = _rng(0.0, 1.5)
-    v_min: float = _rng(0.0, 50.0)
-    v_max: float = _rng(0.0, 50.0)
+
+    wheelbase: float = setting(lo=0.5, hi=10.0)
+    length: float = setting(lo=0.5, hi=20.0)
+    width: float = setting(lo=0.3, hi=5.0)
+    a_min: float = setting(lo=-20.0, hi=0.0)
+    a_max: float = setting(lo=0.0, hi=20.0)
+    delta_max: float = setting(lo=0.0, hi=1.5)
+    v_min: float = setting(lo=0.0, hi=50.0)
+    v_max: float = setting(lo=0.0, hi=50.0)
+
+    def _check(self) -> None:
+        _order(self, "v_min", "v_max")
+
+    @classmethod
+    def load(cls, path: str | pathlib.Path | None = None) -> "VehicleConfig":
+        """The packaged vehicle.yaml, overlaid by the YAML at ``path`` (only what it changes)."""
+        return config.load(cls, path)
 
 
-@dataclass(frozen=True)
 class StyleConfig:
-    """One hidden SV driving style: IDM parameters plus gap acceptance."""
-    probability: float = _rng(0.0, 1.0)
-    v_desired: float = _rng(0.5, 30.0)
-    a_max: float = _rng(0.1, 10.0)
-    b_comfortable: float = _rng(0.1, 10.0)
-    b_max: float = _rng(0.1, 15.0)
-    time_headway: float = _rng(0.0, 5.0)
-    min_gap: float = _rng(0.0, 10.0)
-    sv_gap: float = _rng(0.0, 10.0)
-    yield_to_ev: bool = field(metadata={})
-    ev_gap: float = _rng(-5.0, 10.0)
-    brake_for_crossing_ev: bool = field(metadata={})
-    respects_fcfs: bool = field(metadata={})
+    """One hidden SV driving style: IDM parameters plus gap acceptance. Each style of
+    :data:`STYLES` is its own config class (its defaults are its own block of sv.yaml); they
+    share these keys and this base, so ``isinstance(style, StyleConfig)`` holds for each."""
 
 
-@dataclass(frozen=True)
+def _style_class(style: str) -> type:
+    class Style(StyleConfig):
+        probability: float = setting(lo=0.0, hi=1.0)
+        v_desired: float = setting(lo=0.5, hi=30.0)
+        a_max: float = setting(lo=0.1, hi=10.0)
+        b_comfortable: float = setting(lo=0.1, hi=10.0)
+        b_max: float = setting(lo=0.1, hi=15.0)
+        time_headway: float = setting(lo=0.0, hi=5.0)
+        min_gap: float = setting(lo=0.0, hi=10.0)
+        sv_gap: float = setting(lo=0.0, hi=10.0)
+        yield_to_ev: bool
+        ev_gap: float = setting(lo=-5.0, hi=10.0)
+        brake_for_crossing_ev: bool
+        respects_fcfs: bool
+
+    Style.__name__ = Style.__qualname__ = f"{style.capitalize()}Style"
+    Style.__doc__ = f"The '{style}' SV style (sv.yaml, styles.{style})."
+    return config_class(_Nested(SV_YAML, "styles", style))(Style)
+
+
+AggressiveStyle, ModerateStyle, ConservativeStyle = (_style_class(s) for s in STYLES)
+
+
+@config_class(SV_YAML, "styles")
+class StylesConfig:
+    """The styles an SV is drawn from; ``styles[name]`` is one of them."""
+
+    aggressive: AggressiveStyle
+    moderate: ModerateStyle
+    conservative: ConservativeStyle
+
+    def __getitem__(self, style: str) -> StyleConfig:
+        if style not in STYLES:
+            raise KeyError(style)
+        return getattr(self, style)
+
+    def values(self) -> tuple:
+        return tuple(getattr(self, s) for s in STYLES)
+
+
+@config_class(SV_YAML)
 class SVConfig:
     """Surrounding-vehicle model and spawn distribution."""
-    styles: typing.Dict[str, StyleConfig] = field(metadata={"keys": STYLES})
-    idm_delta: float = _rng(1.0, 10.0)
-    lateral_accel_max: float = _rng(0.5, 15.0)
-    path_sample: float = _rng(0.05, 2.0)
-    grid_cell: float = _rng(0.1, 2.0)
-    grid_radius: float = _rng(0.2, 3.0)
-    lookahead: float = _rng(5.0, 200.0)
-    conflict_margin: float = _rng(0.0, 10.0)
-    conflict_cap_after_exit: float = _rng(0.0, 30.0)
-    stop_margin: float = _rng(0.0, 10.0)
-    commit_margin: float = _rng(0.0, 20.0)
-    creep_speed: float = _rng(0.0, 10.0)
-    request_distance: float = _rng(1.0, 200.0)
-    ev_prediction_horizon: float = _rng(0.0, 10.0)
-    ev_prediction_step: float = _rng(0.05, 5.0)
-    min_speed_for_eta: float = _rng(0.01, 5.0)
-    spawn_time_jitter: float = _rng(0.0, 20.0)
-    spawn_speed_factor_min: float = _rng(0.0, 1.5)
-    spawn_speed_factor_max: float = _rng(0.0, 1.5)
-    min_spawn_distance: float = _rng(0.0, 100.0)
-    slow_speed_factor_min: float = _rng(0.01, 1.0)
-    slow_speed_factor_max: float = _rng(0.01, 1.0)
+
+    styles: StylesConfig
+    idm_delta: float = setting(lo=1.0, hi=10.0)
+    lateral_accel_max: float = setting(lo=0.5, hi=15.0)
+    path_sample: float = setting(lo=0.05, hi=2.0)
+    grid_cell: float = setting(lo=0.1, hi=2.0)
+    grid_radius: float = setting(lo=0.2, hi=3.0)
+    lookahead: float = setting(lo=5.0, hi=200.0)
+    conflict_margin: float = setting(lo=0.0, hi=10.0)
+    conflict_cap_after_exit: float = setting(lo=0.0, hi=30.0)
+    stop_margin: float = setting(lo=0.0, hi=10.0)
+    commit_margin: float = setting(lo=0.0, hi=20.0)
+    creep_speed: float = setting(lo=0.0, hi=10.0)
+    request_distance: float = setting(lo=1.0, hi=200.0)
+    ev_prediction_horizon: float = setting(lo=0.0, hi=10.0)
+    ev_prediction_step: float = setting(lo=0.05, hi=5.0)
+    min_speed_for_eta: float = setting(lo=0.01, hi=5.0)
+    spawn_time_jitter: float = setting(lo=0.0, hi=20.0)
+    spawn_speed_factor_min: float = setting(lo=0.0, hi=1.5)
+    spawn_speed_factor_max: float = setting(lo=0.0, hi=1.5)
+    min_spawn_distance: float = setting(lo=0.0, hi=100.0)
+    slow_speed_factor_min: float = setting(lo=0.01, hi=1.0)
+    slow_speed_factor_max: float = setting(lo=0.01, hi=1.0)
+
+    def _check(self) -> None:
+        total = sum(s.probability for s in self.styles.values())
+        if abs(total - 1.0) > 1e-6:
+            raise invalid("styles", f"probabilities must sum to 1, got {total:g}")
+        _order(self, "spawn_speed_factor_min", "spawn_speed_factor_max")
+        _order(self, "slow_speed_factor_min", "slow_speed_factor_max")
+
+    @classmethod
+    def load(cls, path: str | pathlib.Path | None = None) -> "SVConfig":
+        """The packaged sv.yaml, overlaid by the YAML at ``path`` (only what it changes)."""
+        return config.load(cls, path)
 
 
-@dataclass(frozen=True)
+@config_class(WORLD_YAML)
 class WorldConfig:
-    """Episode-level settings; ``vehicle`` and ``sv`` come from their own files."""
-    dt: float = _rng(1e-3, 1.0)
-    time_limit: float = _rng(0.1, 3600.0)
-    waypoint_spacing: float = _rng(0.5, 20.0)
-    route_tail: float = _rng(0.0, 100.0)
-    success_distance: float = _rng(0.0, 100.0)
-    goal_any_lane: bool = field(metadata={})
-    offroad_check: str = field(metadata={"choices": ("corners", "centre", "off")})
-    ev_start_distance_min: float = _rng(0.0, 500.0)
-    ev_start_distance_max: float = _rng(0.0, 500.0)
-    ev_speed_min: float = _rng(0.0, 30.0)
-    ev_speed_max: float = _rng(0.0, 30.0)
-    ev_nominal_speed: float = _rng(0.1, 30.0)
-    graph_step: float = _rng(0.5, 20.0)
-    lane_change_length: float = _rng(1.0, 100.0)
-    lane_change_penalty: float = _rng(0.0, 1000.0)
-    no_lane_change_zone: float = _rng(0.0, 100.0)
-    vehicle: VehicleConfig = None
-    sv: SVConfig = None
+    """Episode-level settings (world.yaml); ``vehicle`` and ``sv`` are sections whose defaults
+    are vehicle.yaml and sv.yaml."""
 
-    @staticmethod
-    def load(world: str | pathlib.Path | None = None, vehicle: str | pathlib.Path | None = None,
+    dt: float = setting(lo=1e-3, hi=1.0)
+    time_limit: float = setting(lo=0.1, hi=3600.0)
+    waypoint_spacing: float = setting(lo=0.5, hi=20.0)
+    route_tail: float = setting(lo=0.0, hi=100.0)
+    success_distance: float = setting(lo=0.0, hi=100.0)
+    goal_any_lane: bool
+    offroad_check: str = setting(choices=("corners", "centre", "off"))
+    ev_start_distance_min: float = setting(lo=0.0, hi=500.0)
+    ev_start_distance_max: float = setting(lo=0.0, hi=500.0)
+    ev_speed_min: float = setting(lo=0.0, hi=30.0)
+    ev_speed_max: float = setting(lo=0.0, hi=30.0)
+    ev_nominal_speed: float = setting(lo=0.1, hi=30.0)
+    graph_step: float = setting(lo=0.5, hi=20.0)
+    lane_change_length: float = setting(lo=1.0, hi=100.0)
+    lane_change_penalty: float = setting(lo=0.0, hi=1000.0)
+    no_lane_change_zone: float = setting(lo=0.0, hi=100.0)
+    vehicle: VehicleConfig
+    sv: SVConfig
+
+    def _check(self) -> None:
+        _order(self, "ev_start_distance_min", "ev_start_distance_max")
+        _order(self, "ev_speed_min", "ev_speed_max")
+
+    @classmethod
+    def load(cls, world: str | pathlib.Path | None = None, vehicle: str | pathlib.Path | None = None,
              sv: str | pathlib.Path | None = None) -> "WorldConfig":
-        """Read world.yaml, vehicle.yaml and sv.yaml (package defaults unless paths are given)."""
-        veh = load_dataclass(VehicleConfig, vehicle or CONFIG_DIR / "vehicle.yaml")
-        svc = load_dataclass(SVConfig, sv or CONFIG_DIR / "sv.yaml")
-        cfg = load_dataclass(WorldConfig, world or CONFIG_DIR / "world.yaml",
-                             extra={"vehicle": veh, "sv": svc})
-        return cfg
+        """The packaged world.yaml, vehicle.yaml and sv.yaml, each overlaid by the file given
+        for it (it lists only what it changes). The vehicle and SV files hold those sections'
+        keys at their top level; the world file may also change them under ``vehicle:`` and
+        ``sv:``, and wins over the separate files."""
+        layers = []
+        if vehicle is not None:
+            layers.append(({"vehicle": config.to_dict(VehicleConfig.load(vehicle))}, str(vehicle)))
+        if sv is not None:
+            layers.append(({"sv": config.to_dict(SVConfig.load(sv))}, str(sv)))
+        if world is not None:
+            layers.append(config.read_yaml(world))
+        return config.build(cls, *layers)
 
 
-@dataclass(frozen=True)
+@config_class(DRIVERS_YAML)
 class DriverConfig:
     """Scripted reference EV drivers (go / yield)."""
-    target_speed: float = _rng(0.1, 30.0)
-    lookahead_min: float = _rng(0.5, 50.0)
-    lookahead_time: float = _rng(0.0, 10.0)
-    speed_gain: float = _rng(0.0, 20.0)
-    stop_margin: float = _rng(0.0, 20.0)
-    stop_decel: float = _rng(0.1, 10.0)
-    safe_time_gap: float = _rng(0.0, 30.0)
-    watch_distance: float = _rng(0.0, 500.0)
 
-    @staticmethod
-    def load(path: str | pathlib.Path | None = None) -> "DriverConfig":
-        return load_dataclass(DriverConfig, path or CONFIG_DIR / "drivers.yaml")
+    target_speed: float = setting(lo=0.1, hi=30.0)
+    lookahead_min: float = setting(lo=0.5, hi=50.0)
+    lookahead_time: float = setting(lo=0.0, hi=10.0)
+    speed_gain: float = setting(lo=0.0, hi=20.0)
+    stop_margin: float = setting(lo=0.0, hi=20.0)
+    stop_decel: float = setting(lo=0.1, hi=10.0)
+    safe_time_gap: float = setting(lo=0.0, hi=30.0)
+    watch_distance: float = setting(lo=0.0, hi=500.0)
 
-
-def _check_value(cls_name, f, value, where):
-    meta = f.metadata
-    tp = f.type if not isinstance(f.type, str) else eval(f.type, globals(), typing.__dict__)  # noqa: S307
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{where}: key '{f.name}' must be a number, got {value!r}")
-        value = float(value)
-        if not math.isfinite(value):
-            raise ValueError(f"{where}: key '{f.name}' must be finite, got {value!r}")
-    elif tp is bool:
-        if not isinstance(value, bool):
-            raise ValueError(f"{where}: key '{f.name}' must be true/false, got {value!r}")
-    elif tp is str:
-        if not isinstance(value, str):
-            raise ValueError(f"{where}: key '{f.name}' must be a string, got {value!r}")
-        if "choices" in meta and value not in meta["choices"]:
-            raise ValueError(f"{where}: key '{f.name}' must be one of {meta['choices']}, got {value!r}")
-    if tp is float:
-        lo, hi = meta.get("min"), meta.get("max")
-        if lo is not None and value < lo or hi is not None and value > hi:
-            raise ValueError(f"{where}: key '{f.name}' = {value} out of range [{lo}, {hi}]")
-    return value
-
-
-def load_dataclass(cls, source, extra=None):
-    """Build frozen dataclass ``cls`` from a YAML file path or a dict, validating every key."""
-    if isinstance(source, dict):
-        data, where = dict(source), f"<{cls.__name__} dict>"
-    else:
-        where = str(source)
-        try:
-            with open(source) as fh:
-                data = yaml.safe_load(fh)
-        except FileNotFoundError:
-            raise ValueError(f"config file not found: {source}") from None
-        except yaml.YAMLError as exc:
-            raise ValueError(f"{where}: not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{where}: expected a mapping of keys, got {type(data).__name__}")
-    return _build(cls, data, where, extra or {})
-
-
-def _build(cls, data, where, extra):
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(data) - set(fields)
-    if unknown:
-        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)} for {cls.__name__}")
-    kwargs = {}
-    for name, f in fields.items():
-        if name in extra:
-            kwargs[name] = extra[name]
-            continue
-        if name not in data:
-            raise ValueError(f"{where}: missing key '{name}' for {cls.__name__}")
-        value = data[name]
-        if name == "styles":
-            if not isinstance(value, dict) or set(value) != set(STYLES):
-                raise ValueError(f"{where}: key 'styles' must define exactly {STYLES}")
-            kwargs[name] = {k: _build(StyleConfig, value[k] or {}, f"{where} [styles.{k}]", {})
-                            for k in STYLES}
-        else:
-            kwargs[name] = _check_value(cls.__name__, f, value, where)
-    obj = cls(**kwargs)
-    _cross_check(obj, where)
-    return obj
-
-
-def _cross_check(obj, where):
-    def bad(msg):
-        raise ValueError(f"{where}: {msg}")
-    if isinstance(obj, VehicleConfig):
-        if obj.v_min > obj.v_max:
-            bad("v_min must be <= v_max")
-    elif isinstance(obj, SVConfig):
-        total = sum(s.probability for s in obj.styles.values())
-        if abs(total - 1.0) > 1e-6:
-            bad(f"style probabilities must sum to 1, got {total}")
-        if obj.spawn_speed_factor_min > obj.spawn_speed_factor_max:
-            bad("spawn_speed_factor_min must be <= spawn_speed_factor_max")
-        if obj.slow_speed_factor_min > obj.slow_speed_factor_max:
-            bad("slow_speed_factor_min must be <= slow_speed_factor_max")
-    elif isinstance(obj, WorldConfig):
-        if obj.ev_start_distance_min > obj.ev_start_distance_max:
-            bad("ev_start_distance_min must be <= ev_start_distance_max")
-        if obj.ev_speed_min > obj.ev_speed_max:
-            bad("ev_speed_min must be <= ev_speed_max")
+    @classmethod
+    def load(cls, path: str | pathlib.Path | None = None) -> "DriverConfig":
+        """The packaged drivers.yaml, overlaid by the YAML at ``path`` (only what it changes)."""
+        return config.load(cls, path)
