@@ -22,7 +22,7 @@ setup(
         ("share/" + PACKAGE + "/config", glob("config/*.yaml")),
         ("share/" + PACKAGE + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=['numpy', 'pyyaml', 'bimacppo_common'],
+    install_requires=['numpy', 'pyyaml', 'bimacppo_common', 'bimacppo_interfaces', 'bimacppo_ros_common'],
     zip_safe=False,
     maintainer="bimacppo maintainers",
     maintainer_email="maintainers@bimacppo.dev",

@@ -22,7 +22,7 @@ setup(
         ("share/" + PACKAGE + "/config", glob("config/*.yaml")),
         ("share/" + PACKAGE + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=['numpy', 'torch', 'pyyaml', 'bimacppo_common', 'bimacppo_sim', 'bimacppo_mpc', 'bimacppo_curriculum'],
+    install_requires=['numpy', 'torch', 'pyyaml', 'bimacppo_common', 'bimacppo_sim', 'bimacppo_interfaces', 'bimacppo_ros_common'],
     zip_safe=False,
     maintainer="bimacppo maintainers",
     maintainer_email="maintainers@bimacppo.dev",
@@ -32,7 +32,6 @@ setup(
     entry_points={
         "console_scripts": [
             "planner_node = bimacppo_planner.ros.planner_node:main",
-            "bimacppo-graph = bimacppo_planner.ros.graph:main",
         ],
         # planner classes the node's planner_class parameter may name (other packages add theirs)
         "bimacppo.planners": ["default = bimacppo_planner.agent:HighLevelPlanner"],

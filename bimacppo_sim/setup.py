@@ -22,7 +22,7 @@ setup(
         ("share/" + PACKAGE + "/config", glob("config/*.yaml")),
         ("share/" + PACKAGE + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=['numpy', 'pyyaml', 'matplotlib', 'imageio'],
+    install_requires=['numpy', 'pyyaml', 'matplotlib', 'imageio', 'bimacppo_common'],
     zip_safe=False,
     maintainer="bimacppo maintainers",
     maintainer_email="maintainers@bimacppo.dev",
@@ -32,8 +32,6 @@ setup(
     entry_points={
         "console_scripts": [
             "world_node = bimacppo_sim.ros.world_node:main",
-            "mcap_recorder = bimacppo_sim.ros.recorder:main",
-            "mcap_player = bimacppo_sim.ros.player:main",
             "bimacppo-sim = bimacppo_sim.cli:main",
         ],
     },

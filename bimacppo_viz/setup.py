@@ -22,7 +22,7 @@ setup(
         ("share/" + PACKAGE + "/layouts", glob(PACKAGE + "/layouts/*.json")),
         ("share/" + PACKAGE + "/config", glob("config/*.yaml")),
     ],
-    install_requires=["numpy", "foxglove-sdk"],
+    install_requires=["numpy", "foxglove-sdk", "bimacppo_sim", "bimacppo_interfaces", "bimacppo_ros_common"],
     zip_safe=False,
     maintainer="bimacppo maintainers",
     maintainer_email="maintainers@bimacppo.dev",

@@ -43,7 +43,7 @@ import rclpy  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
 from bimacppo_sim.ros.world_node import WorldNode  # noqa: E402
 
 SCENARIO = dict(n_sv=2, task="straight")

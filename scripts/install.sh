@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create (or update) the project's virtual environment with pinned versions of
-# everything, then install the seven bimacppo packages into it in editable mode.
+# everything, then install the eleven bimacppo packages into it in editable mode.
 #
 #   scripts/install.sh            # venv at ./.venv
 #   VENV=/opt/venv scripts/install.sh
@@ -35,15 +35,18 @@ else
   # compat mode = a .pth path entry per package: the repo root also holds same-named
   # ROS package folders, which an import-hook editable install would lose to.
   "${PIP[@]}" install -q --no-deps --no-build-isolation --config-settings editable_mode=compat \
-    -e "$ROOT/bimacppo_common" -e "$ROOT/bimacppo_sim" -e "$ROOT/bimacppo_mpc" \
+    -e "$ROOT/bimacppo_common" -e "$ROOT/bimacppo_interfaces" -e "$ROOT/bimacppo_ros_common" \
+    -e "$ROOT/bimacppo_bag" -e "$ROOT/bimacppo_sim" -e "$ROOT/bimacppo_mpc" \
     -e "$ROOT/bimacppo_curriculum" -e "$ROOT/bimacppo_planner" -e "$ROOT/bimacppo_learning" \
-    -e "$ROOT/bimacppo_viz"
+    -e "$ROOT/bimacppo_viz" -e "$ROOT/bimacppo_bringup"
   echo "$want" > "$stamp"
 fi
 "$VENV/bin/python" - <<'PY'
 import importlib
-for m in ("rclpy", "casadi", "torch", "gymnasium", "bimacppo_common", "bimacppo_sim", "bimacppo_mpc",
-          "bimacppo_curriculum", "bimacppo_planner", "bimacppo_learning", "foxglove", "bimacppo_viz"):
+for m in ("rclpy", "casadi", "torch", "gymnasium", "bimacppo_common", "bimacppo_interfaces.contract",
+          "bimacppo_ros_common.runtime", "bimacppo_bag.recorder", "bimacppo_sim", "bimacppo_mpc",
+          "bimacppo_curriculum", "bimacppo_planner", "bimacppo_learning", "foxglove", "bimacppo_viz",
+          "bimacppo_bringup.composition"):
     importlib.import_module(m)
 print(">> environment OK")
 PY

@@ -20,7 +20,7 @@ from collections import defaultdict
 import rclpy
 from rclpy.serialization import deserialize_message, serialize_message
 
-from bimacppo_sim.ros import interfaces as I
+from bimacppo_interfaces import contract as I
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 ENV = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get("AMENT_PREFIX_PATH", sys.prefix),

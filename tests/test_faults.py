@@ -30,8 +30,8 @@ pytestmark = pytest.mark.ros
 
 import faultlib as F  # noqa: E402
 from test_ros_bad_parameters import CASES as BAD_PARAMETERS  # noqa: E402
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
-from bimacppo_sim.ros import mcap_io  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
+from bimacppo_bag import mcap_io  # noqa: E402
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 LEDGER = F.Ledger()
@@ -241,7 +241,7 @@ def graph(node, policy_file, tmp_path_factory):
     logs = {k: open(d / f"{k}.log", "w") for k in ("world", "planner", "controller", "curriculum", "recorder")}
     args = {"planner": _planner_args(policy_file), "controller": CONTROLLER,
             "world": _world("lockstep", False), "curriculum": CURRICULUM,
-            "recorder": ("-m", "bimacppo_sim.ros.recorder", str(d / "run0.mcap"))}
+            "recorder": ("-m", "bimacppo_bag.recorder", str(d / "run0.mcap"))}
     # a foreign std_msgs/String publisher on a contract topic, from the start: every recorder
     # of the group finds /objects/markers offered with two types
     foreign = F.start("-c", FOREIGN_MARKERS)
@@ -309,7 +309,7 @@ def test_sigkill_and_restart(graph, victim):
     if victim == "recorder":   # a killed recorder leaves a readable prefix; the restart writes a new file
         new = graph["dir"] / f"run{len(graph['mcaps'])}.mcap"
         graph["mcaps"].append(new)
-        args = ("-m", "bimacppo_sim.ros.recorder", str(new))
+        args = ("-m", "bimacppo_bag.recorder", str(new))
         graph["args"]["recorder"] = args
     graph["procs"][victim] = F.start(*args, log=graph["logs"][victim])
     moving = w.progress(ticks=5, timeout=60)
@@ -788,7 +788,7 @@ def _startup_cases(tmp, policy_file):
     huge_mpc.write_text(yaml.safe_dump(huge))
     planner = ("-m", "bimacppo_planner.ros.planner_node", "--ros-args")
     world = ("-m", "bimacppo_sim.ros.world_node", "--ros-args")
-    recorder = ("-m", "bimacppo_sim.ros.recorder")
+    recorder = ("-m", "bimacppo_bag.recorder")
     # bad node parameters (one error line, exit 2), the table of tests/test_ros_bad_parameters.py
     bad_parameters = [(f"{module.rsplit('.', 1)[-1]} {' '.join(params[1::2])}",
                        ("-m", module, *([str(tmp / f"rec{i}.mcap")] if module.endswith("recorder") else []),
@@ -831,10 +831,10 @@ def test_startup_with_corrupt_inputs_exits_2_with_one_line(tmp_path, policy_file
     procs = []
     for name, args in cases:
         if name == "player truncated MCAP":
-            args = ("-m", "bimacppo_sim.ros.player", str(tmp_path / "trunc.mcap"), "--ros-args",
+            args = ("-m", "bimacppo_bag.player", str(tmp_path / "trunc.mcap"), "--ros-args",
                     "-p", "start_delay_s:=0.1", "-p", "linger_s:=0.1", "-p", "rate:=0.0")
         elif name == "player corrupted MCAP":
-            args = ("-m", "bimacppo_sim.ros.player", str(tmp_path / "corrupt.mcap"))
+            args = ("-m", "bimacppo_bag.player", str(tmp_path / "corrupt.mcap"))
         procs.append((name, subprocess.Popen([sys.executable, *args], env=F.ENV, stdout=subprocess.PIPE,
                                              stderr=subprocess.PIPE, text=True)))
     bad = []
@@ -876,7 +876,7 @@ def test_checkpoints_loaded_weights_only_and_discovery_localhost():
                     offenders.append(f"{path.relative_to(REPO)}: {call}")
     held = LEDGER.record("defaults", "torch.load always weights_only=True", not offenders, str(offenders))
     assert held, offenders
-    from bimacppo_sim.ros import runtime
+    from bimacppo_ros_common import runtime
     demo = (REPO / "scripts" / "demo.sh").read_text()
     held = LEDGER.record("defaults", "localhost discovery in demo and runtime",
                          "ROS_AUTOMATIC_DISCOVERY_RANGE=\"${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}\"" in demo

@@ -11,11 +11,15 @@ from conftest import REPO
 
 EXECUTABLES = {
     "bimacppo_common": [],
-    "bimacppo_sim": ["world_node", "mcap_recorder", "mcap_player", "bimacppo-sim"],
+    "bimacppo_interfaces": [],
+    "bimacppo_ros_common": [],
+    "bimacppo_bag": ["mcap_recorder", "mcap_player"],
+    "bimacppo_sim": ["world_node", "bimacppo-sim"],
     "bimacppo_mpc": ["controller_node"],
     "bimacppo_curriculum": ["curriculum_node"],
-    "bimacppo_planner": ["planner_node", "bimacppo-graph"],
+    "bimacppo_planner": ["planner_node"],
     "bimacppo_viz": ["live_view"],
+    "bimacppo_bringup": ["bimacppo-graph"],
 }
 # the training stack is a plain Python package, not part of the deployed ROS workspace
 TRAINING_EXECUTABLES = ["bimacppo-train", "bimacppo-evaluate", "bimacppo-report", "bimacppo-experiments"]
@@ -98,8 +102,8 @@ def test_launch_file_starts_installed_executables_with_existing_params(colcon_in
 
     import yaml
 
-    launch_file = colcon_install / "bimacppo_planner" / "share" / "bimacppo_planner" / "launch" / "bimacppo.launch.py"
-    assert launch_file.is_file(), "launch file not installed under share/bimacppo_planner/launch"
+    launch_file = colcon_install / "bimacppo_bringup" / "share" / "bimacppo_bringup" / "launch" / "bimacppo.launch.py"
+    assert launch_file.is_file(), "launch file not installed under share/bimacppo_bringup/launch"
     mods = _stub_launch_modules(monkeypatch, lambda pkg: str(colcon_install / pkg / "share" / pkg))
     spec = importlib.util.spec_from_file_location("bimacppo_launch_under_test", launch_file)
     module = importlib.util.module_from_spec(spec)

@@ -8,8 +8,8 @@ import pytest
 CASES = [
     ("bimacppo_curriculum.ros.curriculum_node", ["-p", "world_node:=bad name!"], "Invalid service name"),
     ("bimacppo_curriculum.ros.curriculum_node", ["-p", "result_topic:=bad topic"], "Invalid topic name"),
-    ("bimacppo_sim.ros.recorder", ["-p", "discovery_period_s:=-1.0"], "discovery_period_s must be in"),
-    ("bimacppo_sim.ros.recorder", ["-p", "flush_period_s:=0.0"], "flush_period_s must be in"),
+    ("bimacppo_bag.recorder", ["-p", "discovery_period_s:=-1.0"], "discovery_period_s must be in"),
+    ("bimacppo_bag.recorder", ["-p", "flush_period_s:=0.0"], "flush_period_s must be in"),
     ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=os:system"], "is not a planner class"),
     ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=torch.serialization:load"],
      "is not a planner class"),
@@ -43,7 +43,7 @@ def test_params_file_keys_no_node_declares_are_found_and_the_shipped_files_have_
     from bimacppo_curriculum.ros.curriculum_node import CurriculumNode
     from bimacppo_mpc.ros.controller_node import ControllerNode
     from bimacppo_planner.ros.planner_node import PlannerNode
-    from bimacppo_sim.ros.runtime import undeclared_file_parameters
+    from bimacppo_ros_common.params import undeclared_file_parameters
     from bimacppo_sim.ros.world_node import WorldNode
     from conftest import REPO
 

@@ -25,7 +25,7 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rosgraph_msgs.msg import Clock as ClockMsg  # noqa: E402
 
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
 
 # --- the foreign simulator's own description of its junction (docs/interfaces.md numbers)
 POSE = (412.0, -318.5, 0.6)       # junction centre (m) and rotation (rad) in the map frame

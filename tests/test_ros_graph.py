@@ -18,8 +18,8 @@ rclpy = pytest.importorskip("rclpy")
 pytestmark = pytest.mark.ros
 
 from bimacppo_sim import Scenario, World, load_map  # noqa: E402
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
-from bimacppo_sim.ros import mcap_io  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
+from bimacppo_bag import mcap_io  # noqa: E402
 
 ENV = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get("AMENT_PREFIX_PATH", sys.prefix))
 SCENARIO = Scenario(n_sv=2, task="straight", seed=1)
@@ -187,7 +187,7 @@ def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_
 def demo_mcap(tmp_path_factory, policy_file):
     """Two episodes of the one-process demo, recorded (shared by the tests below)."""
     mcap = tmp_path_factory.mktemp("demo") / "demo.mcap"
-    demo = _start("-m", "bimacppo_planner.ros.graph", "--episodes", "2", "--scheduler", "random",
+    demo = _start("-m", "bimacppo_bringup.graph", "--episodes", "2", "--scheduler", "random",
                   "--policy", str(policy_file), "--output", str(mcap), "--timeout", "60")
     out, _ = demo.communicate(timeout=90)
     return mcap, demo.returncode, out
@@ -266,7 +266,7 @@ def test_player_drives_planner_and_controller(node, demo_mcap, policy_file, rate
     procs = [_planner(policy_file, *sim_time),
              _start("-m", "bimacppo_mpc.ros.controller_node", "--ros-args", *sim_time)]
     # the player starts once planner and controller are matched on /ego/odom and /objects
-    player = _start("-m", "bimacppo_sim.ros.player", str(mcap), "--ros-args", "-p", f"rate:={rate}",
+    player = _start("-m", "bimacppo_bag.player", str(mcap), "--ros-args", "-p", f"rate:={rate}",
                     "-p", "timing:=clock", "-p", "as_world:=true", "-p", "wait_subscribers:=2",
                     "-p", "start_delay_s:=0.5")
     try:

@@ -1,4 +1,4 @@
-"""Message <-> numpy conventions (bimacppo_sim.ros.interfaces) and MCAP helpers: pure, fast."""
+"""Message <-> numpy conventions (bimacppo_interfaces.contract) and MCAP helpers: pure, fast."""
 import math
 
 import numpy as np
@@ -6,8 +6,9 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
-from bimacppo_sim.ros import mcap_io  # noqa: E402
+from bimacppo_bag import mcap_io  # noqa: E402
+from bimacppo_common.conventions import wrap_angle  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
 
 RNG = np.random.default_rng(0)
 
@@ -28,7 +29,7 @@ def test_state_round_trip_and_yaw_convention(psi):
     assert msg.twist.twist.linear.x == 4.0
     back = I.odometry_to_state(msg)
     assert np.allclose(back[:3], state[:3], atol=0, rtol=0)
-    assert abs(I.wrap_angle(back[3] - psi)) < 1e-12
+    assert abs(wrap_angle(back[3] - psi)) < 1e-12
     assert -math.pi < back[3] <= math.pi
 
 
@@ -135,7 +136,7 @@ def test_reference_goal_and_result_round_trip():
     assert np.allclose(I.odometry_to_reference(ref), [1.0, 2.0, 6.0, 0.5])
     goal = I.goal_to_pose([-30.0, 3.5, math.pi], 10)
     g = I.pose_to_goal(goal)
-    assert np.allclose(g[:2], [-30.0, 3.5]) and abs(I.wrap_angle(g[2] - math.pi)) < 1e-12
+    assert np.allclose(g[:2], [-30.0, 3.5]) and abs(wrap_angle(g[2] - math.pi)) < 1e-12
     res = I.EpisodeResult("collision", -12.5, 2, "left", 7, 33, 123)
     st = I.result_to_status(res)
     assert st.level == I.DiagnosticStatus.ERROR and st.message == "collision"

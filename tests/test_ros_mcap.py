@@ -16,8 +16,8 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytestmark = pytest.mark.ros
 
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
-from bimacppo_sim.ros import mcap_io  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
+from bimacppo_bag import mcap_io  # noqa: E402
 
 os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
 PROC_TIMEOUT = 20
@@ -74,7 +74,7 @@ def _record(node, path, n_msgs, extra=()):
     goal = node.create_publisher(I.PoseStamped, I.TOPIC_GOAL, I.LATCHED_QOS)
     goal.publish(I.goal_to_pose([10.0, -3.5, 1.0], 7))  # before the recorder exists: latched
     before = _sub_gids(node, I.TOPIC_EGO_ODOM)
-    rec = _start("bimacppo_sim.ros.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
+    rec = _start("bimacppo_bag.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
                  *extra)
     _wait_new_subscriber(node, I.TOPIC_EGO_ODOM, before)
     # the graph shows the subscriber before DDS has matched it to this publisher: wait for
@@ -143,7 +143,7 @@ def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
     gsub = node.create_subscription(I.PoseStamped, I.TOPIC_GOAL, latched.append, I.LATCHED_QOS)
     # wait_subscribers: start only once this node's reader is matched (a loaded machine can
     # take longer than any fixed delay, and volatile samples sent before the match are lost)
-    play = _start("bimacppo_sim.ros.player", str(path), "--ros-args", "-p", "rate:=4.0",
+    play = _start("bimacppo_bag.player", str(path), "--ros-args", "-p", "rate:=4.0",
                   "-p", "wait_subscribers:=1", "-p", "start_delay_s:=0.3")
     t_end = time.monotonic() + PROC_TIMEOUT
     while play.poll() is None and time.monotonic() < t_end:
@@ -159,7 +159,7 @@ def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
     trunc = tmp_path / "trunc.mcap"
     trunc.write_bytes(data[: len(data) * 2 // 3])
     got.clear()
-    play = _start("bimacppo_sim.ros.player", str(trunc), "--ros-args", "-p", "rate:=0.0",
+    play = _start("bimacppo_bag.player", str(trunc), "--ros-args", "-p", "rate:=0.0",
                   "-p", "start_delay_s:=0.5")
     t_end = time.monotonic() + PROC_TIMEOUT
     while play.poll() is None and time.monotonic() < t_end:
@@ -168,10 +168,10 @@ def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
     assert rc == 0 and "Traceback" not in out and "damaged" in out, out
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"\x89MCAP0\r\n" + os.urandom(2000))
-    play = _start("bimacppo_sim.ros.player", str(junk), "--ros-args", "-p", "start_delay_s:=0.0")
+    play = _start("bimacppo_bag.player", str(junk), "--ros-args", "-p", "start_delay_s:=0.0")
     out, _ = play.communicate(timeout=PROC_TIMEOUT)
     assert play.returncode == 1 and "Traceback" not in out and "nothing playable" in out, out
-    missing = _start("bimacppo_sim.ros.player", str(tmp_path / "nope.mcap"))
+    missing = _start("bimacppo_bag.player", str(tmp_path / "nope.mcap"))
     out, _ = missing.communicate(timeout=PROC_TIMEOUT)
     assert missing.returncode == 2 and "no such file" in out and "Traceback" not in out, out
     node.destroy_subscription(sub)
@@ -192,7 +192,7 @@ def test_topic_offered_with_two_types_records_the_documented_one(node, tmp_path)
         _spin(node, 0.05)
     cmd = node.create_publisher(I.JointTrajectory, I.TOPIC_COMMAND, I.STATE_QOS)
     before = _sub_gids(node, I.TOPIC_COMMAND)
-    rec = _start("bimacppo_sim.ros.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
+    rec = _start("bimacppo_bag.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
                  "-p", f"topics:=['{I.TOPIC_COMMAND}']")
     _wait_new_subscriber(node, I.TOPIC_COMMAND, before)
     _spin(node, 0.3)
@@ -215,7 +215,7 @@ def test_recorder_never_overwrites_an_existing_file_or_directory(tmp_path):
     crashed = tmp_path / "run.mcap"
     crashed.write_bytes(b"the crash's recording")
     for target, what in ((crashed, "an existing file"), (tmp_path, "a directory")):
-        rec = _start("bimacppo_sim.ros.recorder", str(target))
+        rec = _start("bimacppo_bag.recorder", str(target))
         out, _ = rec.communicate(timeout=PROC_TIMEOUT)
         assert rec.returncode == 2 and "Traceback" not in out, out
         assert f"is {what}: refusing to overwrite" in out, out

@@ -24,8 +24,8 @@ from mcap_ros2.writer import Writer as Ros2Writer  # noqa: E402
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.serialization import serialize_message  # noqa: E402
 
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
-from bimacppo_sim.ros import mcap_io  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
+from bimacppo_bag import mcap_io  # noqa: E402
 
 os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
 PROC_TIMEOUT = 30
@@ -67,7 +67,7 @@ def _spin(node, seconds):
 
 def _play(node, bag, *params, until=None):
     """Run the player on ``bag`` to its end while spinning ``node``; returns (rc, output)."""
-    args = [sys.executable, "-m", "bimacppo_sim.ros.player", str(bag), "--ros-args",
+    args = [sys.executable, "-m", "bimacppo_bag.player", str(bag), "--ros-args",
             "-p", "start_delay_s:=0.3", "-p", "linger_s:=0.5"]
     for p in params:
         args += ["-p", p]
@@ -317,7 +317,7 @@ def test_recorder_writes_rosbag2_serialized_metadata(node, tmp_path):
     path = tmp_path / "rec.mcap"
     odom = node.create_publisher(I.Odometry, I.TOPIC_EGO_ODOM, I.STATE_QOS)
     before = {bytes(i.endpoint_gid) for i in node.get_subscriptions_info_by_topic(I.TOPIC_EGO_ODOM)}
-    rec = subprocess.Popen([sys.executable, "-m", "bimacppo_sim.ros.recorder", str(path), "--ros-args",
+    rec = subprocess.Popen([sys.executable, "-m", "bimacppo_bag.recorder", str(path), "--ros-args",
                             "-p", "discovery_period_s:=0.1", "-p", f"topics:=['{I.TOPIC_EGO_ODOM}']"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     t_end = time.monotonic() + PROC_TIMEOUT

@@ -23,7 +23,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rosgraph_msgs.msg import Clock as ClockMsg  # noqa: E402
 
 from bimacppo_sim import Scenario, World, load_map  # noqa: E402
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
 
 MAP = "dual_lane_4way"
 POLICY_SEED = 0

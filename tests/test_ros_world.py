@@ -12,7 +12,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
 
 
 def _goals_received(period_s: float, listen_s: float) -> list:

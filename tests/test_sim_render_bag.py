@@ -17,8 +17,8 @@ from bimacppo_sim import Scenario, World, load_map  # noqa: E402
 from bimacppo_sim.cli import main  # noqa: E402
 from bimacppo_sim.drivers import run_episode  # noqa: E402
 from bimacppo_sim.render import EV_COLOUR  # noqa: E402
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
-from bimacppo_sim.ros import mcap_io  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
+from bimacppo_bag import mcap_io  # noqa: E402
 
 MAP = "single_lane_4way"
 EPISODES = (Scenario(1, "straight", 3), Scenario(0, "left", 4))
@@ -262,7 +262,7 @@ def test_rosbag2_directory_renders_its_files(bag, tmp_path, capsys):
 
 
 def test_route_from_markers_takes_the_worlds_route_only():
-    from bimacppo_sim.ros.bag_frames import route_from_markers
+    from bimacppo_interfaces.contract import route_from_markers
     route = np.array([[0.0, -50.0, 1.57], [0.0, -10.0, 1.57], [3.0, 2.0, 0.5]])
     markers = I.world_markers([0, -50, 5, 1.57], np.zeros((2, 4)), [3, 2, 0.5], route, 100).markers
     assert route_from_markers(markers).tolist() == route[:, :2].tolist()

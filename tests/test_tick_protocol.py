@@ -9,7 +9,7 @@ really restarted, a source whose ticks the node keeps refusing.
 import numpy as np
 import pytest
 
-from bimacppo_sim.ros.tick_protocol import (GOAL_HISTORY, REFUSED, RESYNC_MIN_S, RESYNC_REPEATS,
+from bimacppo_ros_common.tick_protocol import (GOAL_HISTORY, REFUSED, RESYNC_MIN_S, RESYNC_REPEATS,
                                             STALE_RESTART, TickProtocol, Verdict)
 
 V = Verdict

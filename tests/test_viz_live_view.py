@@ -17,7 +17,7 @@ rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("foxglove")
 pytestmark = pytest.mark.ros
 
-from bimacppo_sim.ros import interfaces as I  # noqa: E402
+from bimacppo_interfaces import contract as I  # noqa: E402
 from bimacppo_viz import scene as S  # noqa: E402
 from vizlib import OP_BINARY, OP_TEXT, WsClient, message_data, protobuf_class  # noqa: E402
 
@@ -238,7 +238,7 @@ def test_graph_live_view_flag_shows_the_running_graph(policy_file, tmp_path):
     the recording (our recorder's) renders with ``bimacppo-sim render-bag``."""
     port = _free_port()
     mcap, gif = tmp_path / "run.mcap", tmp_path / "run.gif"
-    proc = _start("-m", "bimacppo_planner.ros.graph", "--episodes", "1", "--scheduler", "fixed",
+    proc = _start("-m", "bimacppo_bringup.graph", "--episodes", "1", "--scheduler", "fixed",
                   "--policy", str(policy_file), "--output", str(mcap), "--timeout", "90", "--live-view", str(port))
     try:
         client = _connect(port, proc, timeout=60)

@@ -29,7 +29,7 @@ def _yaw(q):
 
 
 def test_frames_are_the_contracts():
-    I = pytest.importorskip("bimacppo_sim.ros.interfaces")
+    I = pytest.importorskip("bimacppo_interfaces.contract")
     assert (S.FRAME_MAP, S.FRAME_EGO, S.FRAME_REFERENCE) == (I.FRAME_MAP, I.FRAME_BASE, I.FRAME_REFERENCE)
     for yaw in (-3.0, -0.4, 0.0, 2.5, math.pi):   # the same yaw-only quaternion as the messages carry
         q, r = decode(S.yaw_quaternion(yaw)), I.yaw_to_quaternion(yaw)

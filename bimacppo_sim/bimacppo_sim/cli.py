@@ -89,7 +89,7 @@ def cmd_render_bag(a):
     from .config import WorldConfig
     from .render import FrameView, GifWriter, Renderer
     try:   # the message types of the recording: only this command needs ROS
-        from .ros.bag_frames import read_bag
+        from bimacppo_bag.bag_frames import read_bag
     except ImportError as exc:
         raise ValueError(f"render-bag needs the ROS 2 Python packages (rclpy, common_interfaces): {exc}") from None
     if a.every < 1 or a.max_frames < 1:

@@ -1,6 +1,6 @@
 """The live view's scene: graph states (numpy, sim-time stamps in ns) -> Foxglove messages.
 
-Inputs are what ``bimacppo_sim.ros.interfaces`` converters return (``[x, y, v, psi]`` in the
+Inputs are what ``bimacppo_interfaces.contract`` converters return (``[x, y, v, psi]`` in the
 ``map`` frame, SV ids + ``(n, 4)`` states, ``[x, y, psi]`` goal, ``[a, delta]`` command with
 its horizon), so every message convention is decided there and nowhere here. This module
 imports no rclpy: it is unit-testable anywhere ``foxglove-sdk`` is installed.

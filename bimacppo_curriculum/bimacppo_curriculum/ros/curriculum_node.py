@@ -23,8 +23,9 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from bimacppo_curriculum import make_scheduler
-from bimacppo_sim.ros import interfaces as I
-from bimacppo_sim.ros.runtime import guarded, param_range, run_single
+from bimacppo_interfaces import contract as I
+from bimacppo_ros_common.params import param_range
+from bimacppo_ros_common.runtime import guarded, run_single
 
 TASKS = ("left", "straight", "right")  # architecture.md: task index j -> name
 RECENT_TICKS = 256

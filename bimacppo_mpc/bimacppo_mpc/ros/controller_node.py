@@ -26,9 +26,10 @@ import numpy as np
 from rclpy.node import Node
 
 from bimacppo_mpc import MPCConfig, make_controller
-from bimacppo_sim.ros import interfaces as I
-from bimacppo_sim.ros.runtime import ConfigError, guarded, param_file, param_range, run_single
-from bimacppo_sim.ros.tick_protocol import REFUSED, TickProtocol, Verdict
+from bimacppo_interfaces import contract as I
+from bimacppo_ros_common.params import ConfigError, param_file, param_range
+from bimacppo_ros_common.runtime import guarded, run_single
+from bimacppo_ros_common.tick_protocol import REFUSED, TickProtocol, Verdict
 
 SOLVERS = ("fast", "ipopt")
 

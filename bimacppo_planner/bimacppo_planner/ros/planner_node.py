@@ -38,9 +38,10 @@ from rclpy.node import Node
 
 from bimacppo_planner.decision import EnvConfig, step_reward
 from bimacppo_sim.geometry import MapFrame
-from bimacppo_sim.ros import interfaces as I
-from bimacppo_sim.ros.runtime import ConfigError, guarded, one_line, param_file, param_range, run_single
-from bimacppo_sim.ros.tick_protocol import REFUSED, TickProtocol, Verdict
+from bimacppo_interfaces import contract as I
+from bimacppo_ros_common.params import ConfigError, param_file, param_range
+from bimacppo_ros_common.runtime import guarded, one_line, run_single
+from bimacppo_ros_common.tick_protocol import REFUSED, TickProtocol, Verdict
 
 DEFAULT_CLASS = "bimacppo_planner.agent:HighLevelPlanner"
 

@@ -1,5 +1,4 @@
-"""ROS 2 adapters of bimacppo_sim (rclpy lives only below this package).
+"""The world node, the ROS 2 adapter of bimacppo_sim (rclpy lives only below this package).
 
-``interfaces`` is the single place where topic names, QoS profiles and message
-conventions are defined; every node of the stack converts through it.
+It speaks the contract of bimacppo_interfaces and runs on bimacppo_ros_common's plumbing.
 """

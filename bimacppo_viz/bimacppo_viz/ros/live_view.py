@@ -5,7 +5,7 @@
 
 Open ``ws://HOST:PORT`` in Foxglove and import the layout ``share/bimacppo_viz/layouts/
 bimacppo_live.json`` (docs/live-view.md). The node only listens: every input goes through the
-converters of ``bimacppo_sim.ros.interfaces`` with the documented QoS (a reliable reader, so it
+converters of ``bimacppo_interfaces.contract`` with the documented QoS (a reliable reader, so it
 matches the graph's publishers; the latched goal reaches it when it starts late), and the scene
 is built by :mod:`bimacppo_viz.scene`. A message the converters reject is dropped with a
 throttled warning, like in every node. The server binds to ``host`` only (default loopback: a
@@ -18,12 +18,12 @@ from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.validate_topic_name import validate_topic_name
 
+from bimacppo_interfaces import contract as I
+from bimacppo_interfaces.contract import route_from_markers
+from bimacppo_ros_common.params import ConfigError
+from bimacppo_ros_common.runtime import guarded, one_line, run_single
 from bimacppo_sim.config import WorldConfig
 from bimacppo_sim.road import available_maps, load_map
-from bimacppo_sim.ros import interfaces as I
-from bimacppo_sim.ros.runtime import ConfigError, guarded, one_line, run_single
-
-from bimacppo_sim.ros.bag_frames import route_from_markers
 
 from ..scene import CHANNELS, LiveScene
 

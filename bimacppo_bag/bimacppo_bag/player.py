@@ -30,7 +30,7 @@ Any ROS 2 MCAP plays, whoever wrote it:
 * messages go out in log-time order, also when the writer stored them grouped by topic;
 * each topic is re-offered with the QoS recorded in its channel metadata (else the
   directory's metadata.yaml); without a record, a topic of the contract gets its
-  documented profile (``interfaces.TOPIC_QOS``: /goal_pose latched), any other topic
+  documented profile (``contract.TOPIC_QOS``: /goal_pose latched), any other topic
   reliable/volatile;
 * ``timing:=clock`` on a bag without /clock messages falls back to log timing with one
   warning (a stand-in run should not die of a missing clock: its log times still pace it);
@@ -58,10 +58,11 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock as ClockMsg
 
-from . import interfaces as I
+from bimacppo_interfaces import contract as I
+from bimacppo_ros_common.runtime import SetupException, run_single
+
 from . import mcap_io
 from .recorder import import_message_type, string_list
-from .runtime import SetupException, run_single
 
 BATCH = 200
 """Messages published per timer callback at most, so the executor stays responsive."""
@@ -80,7 +81,7 @@ def offered_qos(metadata: Dict[str, str], min_depth: int, topic: str = "",
 
     The recorded publishers' policies (channel metadata, else ``fallback_yaml`` from a
     rosbag2 metadata.yaml) if they agree; without any record the contract's documented
-    profile of the topic (``interfaces.TOPIC_QOS``); else reliable/volatile. Volatile
+    profile of the topic (``contract.TOPIC_QOS``); else reliable/volatile. Volatile
     topics get at least ``min_depth`` so a burst at ``rate:=0`` is not dropped by the writer.
     """
     recs = mcap_io.qos_from_yaml(metadata.get("offered_qos_profiles", "")) or \

@@ -38,9 +38,11 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from . import interfaces as I
+from bimacppo_interfaces import contract as I
+from bimacppo_ros_common.params import param_range
+from bimacppo_ros_common.runtime import run_single
+
 from . import mcap_io
-from .runtime import param_range, run_single
 
 MIN_PERIOD_S = 0.01   # shortest discovery / flush period: a timer at 0 s fires on every spin
 

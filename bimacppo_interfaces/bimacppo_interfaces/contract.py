@@ -32,6 +32,8 @@ from trajectory_msgs.msg import (
 )
 from visualization_msgs.msg import Marker, MarkerArray
 
+from bimacppo_common.conventions import OUTCOMES, wrap_angle
+
 # ----------------------------------------------------------------------------- names
 FRAME_MAP = "map"
 FRAME_BASE = "base_link"
@@ -78,7 +80,6 @@ JOINT_DRIVE = "drive"
 COMMAND_JOINTS = (JOINT_STEERING, JOINT_DRIVE)
 
 RESULT_NAME = "bimacppo/episode"
-OUTCOMES = ("success", "collision", "timeout")
 RESULT_LEVEL = {"success": DiagnosticStatus.OK, "timeout": DiagnosticStatus.WARN,
                 "collision": DiagnosticStatus.ERROR}
 
@@ -151,12 +152,6 @@ def stamp_to_ns(stamp: TimeMsg) -> int:
 def ns_to_duration(ns: int) -> DurationMsg:
     ns = int(ns)
     return DurationMsg(sec=ns // NS_PER_S, nanosec=ns % NS_PER_S)
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap to (-pi, pi] (architecture.md convention)."""
-    w = math.atan2(math.sin(a), math.cos(a))
-    return math.pi if w == -math.pi else w
 
 
 def yaw_to_quaternion(yaw: float) -> Quaternion:
@@ -448,6 +443,11 @@ def result_extras(msg: DiagnosticStatus) -> dict:
 
 
 # ----------------------------------------------------------------------------- markers
+ROUTE_MARKER_NS = "route"
+"""Namespace of the world's A* route in /objects/markers (one LINE_STRIP): what a reader
+(the live view, a bag's frames) takes the route from."""
+
+
 @dataclass(frozen=True)
 class MarkerStyle:
     """Display-only sizes and colours (RGBA 0..1); bodies come from the simulator's config."""
@@ -500,7 +500,7 @@ def world_markers(ego, sv_states, goal, route, stamp_ns: int,
     if route is not None and len(route) > 1:
         r = Marker()
         r.header.stamp, r.header.frame_id = stamp, FRAME_MAP
-        r.ns, r.id, r.type, r.action = "route", 0, Marker.LINE_STRIP, Marker.ADD
+        r.ns, r.id, r.type, r.action = ROUTE_MARKER_NS, 0, Marker.LINE_STRIP, Marker.ADD
         r.pose.orientation.w = 1.0
         r.scale.x = style.line_width
         r.points = [Point(x=float(p[0]), y=float(p[1]), z=0.05) for p in np.asarray(route)]
@@ -520,3 +520,11 @@ def reference_markers(x_imr, stamp_ns: int, style: MarkerStyle = MarkerStyle()) 
     m.scale.x, m.scale.y, m.scale.z = max(1.0, float(x_imr[2])), 0.4, 0.4
     _color(m, style.reference_rgba)
     return MarkerArray(markers=[m])
+
+
+def route_from_markers(markers) -> Optional[np.ndarray]:
+    """The world's route in a marker list (``/objects/markers``) as an ``(M, 2)`` array, or None."""
+    for mk in markers:
+        if mk.ns == ROUTE_MARKER_NS and mk.type == Marker.LINE_STRIP and len(mk.points) >= 2:
+            return np.array([[p.x, p.y] for p in mk.points], dtype=float)
+    return None

@@ -2,7 +2,7 @@
 
 The bag (an MCAP file or a rosbag2 directory, any writer) is read with ``mcap_io.iter_mcap``
 (log-time order, damaged chunks skipped and reported) and every message goes through the
-converters of :mod:`interfaces`, so a frame shows exactly what a node of the graph would have
+converters of :mod:`bimacppo_interfaces.contract`, so a frame shows exactly what a node of the graph would have
 received. Rules:
 
 * one frame per distinct ``/ego/odom`` stamp (a lockstep re-send repeats a stamp: drawn once);
@@ -27,7 +27,8 @@ from typing import Callable, Dict, List, Optional
 import numpy as np
 from rclpy.serialization import deserialize_message
 
-from . import interfaces as I
+from bimacppo_interfaces import contract as I
+
 from . import mcap_io
 
 TOPICS = {   # topic -> message class; /ego/odom is the one a frame needs
@@ -38,7 +39,6 @@ TOPICS = {   # topic -> message class; /ego/odom is the one a frame needs
     I.TOPIC_MARKERS: I.MarkerArray,
     I.TOPIC_RESULT: I.DiagnosticStatus,
 }
-ROUTE_MARKER_NS = "route"   # interfaces.world_markers: the world's A* route as LINE_STRIP "route"
 
 
 class BagRenderError(ValueError):
@@ -72,14 +72,6 @@ def _same_type(a: str, b: str) -> bool:
         return mcap_io.split_type(a) == mcap_io.split_type(b)
     except mcap_io.DefinitionNotFound:
         return False
-
-
-def route_from_markers(markers) -> Optional[np.ndarray]:
-    """The world's route in a marker list (``/objects/markers``) as an ``(M, 2)`` array, or None."""
-    for mk in markers:
-        if mk.ns == ROUTE_MARKER_NS and mk.type == I.Marker.LINE_STRIP and len(mk.points) >= 2:
-            return np.array([[p.x, p.y] for p in mk.points], dtype=float)
-    return None
 
 
 def _latest(stamps: List[int], items: list, stamp: int):
@@ -141,7 +133,7 @@ def read_bag(path, progress: Optional[Callable[[int], None]] = None) -> BagFrame
         return lambda m: (I.stamp_to_ns(m.header.stamp), fn(m))
 
     def route(m):   # every marker of the array carries the tick's stamp
-        pts = route_from_markers(m.markers)
+        pts = I.route_from_markers(m.markers)
         return (I.stamp_to_ns(m.markers[0].header.stamp), pts) if pts is not None else (-1, None)
 
     def result(m):
