@@ -259,3 +259,117 @@ def test_report_counts_episodes_per_second_over_every_resumed_segment():
     assert s["wall_s"] == 25.0 and s["segments"] == 2 and s["episodes_per_s"] == pytest.approx(20 / 25)
     assert training_wall_s(recs[:10]) == (20.0, 1)
     assert training_wall_s([{"episode": 1}])[1] == 0
+
+
+# --- the NMPC a policy was trained with: recorded, checked on resume / init, evaluation's default ---
+
+UNBOUNDED = "bimacppo_mpc/bimacppo_mpc/config/mpc_unbounded.yaml"
+
+
+@pytest.fixture(scope="module")
+def trained_unbounded(trained):
+    from conftest import REPO
+
+    d, cfg, _ = trained
+    run = d / "run_unbounded"
+    rc = train_main(["--episodes", "2", "--seed", "3", "--run-dir", str(run), "--ppo-config", str(cfg),
+                     "--no-progress", "--mpc-config", str(REPO / UNBOUNDED)])
+    assert rc == 0
+    return run
+
+
+def test_train_records_its_mpc_config_in_checkpoint_policy_and_run_json(trained_unbounded, trained):
+    from bimacppo_mpc import MPCConfig
+    from conftest import REPO
+
+    from bimacppo_learning.checkpoint import load_checkpoint, mpc_config_of, run_meta_of
+    from bimacppo_planner.agent import load_policy
+
+    run = trained_unbounded
+    unbounded = MPCConfig.load(REPO / UNBOUNDED)
+    assert unbounded.to_dict() != MPCConfig.load().to_dict()       # the test means something
+    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
+    meta = run_meta_of(load_checkpoint(ckpt), ckpt)
+    assert meta["mpc_config"] == unbounded.to_dict()
+    assert mpc_config_of(meta, ckpt).to_dict() == unbounded.to_dict()
+    assert load_policy(run / "policy.pt").meta["mpc_config"] == unbounded.to_dict()
+    assert json.loads((run / "run.json").read_text())["mpc_config"] == unbounded.to_dict()
+    # a run without --mpc-config records the packaged controller
+    _, _, packaged_run = trained
+    assert load_policy(packaged_run / "policy.pt").meta["mpc_config"] == MPCConfig.load().to_dict()
+
+
+def test_resume_with_another_mpc_config_is_refused_naming_a_field(trained_unbounded, tmp_path, capsys):
+    from bimacppo_mpc import MPCConfig
+
+    run = trained_unbounded
+    before = _snapshot(run)
+    cfg = run.parent / "ppo.yaml"
+    horizon = tmp_path / "mpc_h12.yaml"
+    horizon.write_text("horizon: 12\n")
+    packaged = MPCConfig.load()
+    for extra, says in ((["--mpc-config", str(horizon)], f"horizon: {packaged.horizon} != 12"),
+                        ([], f"steer_rate_max: None != {packaged.steer_rate_max}")):
+        rc = train_main(["--episodes", "4", "--seed", "3", "--run-dir", str(run), "--ppo-config", str(cfg),
+                         "--no-progress", "--resume", *extra])
+        assert rc == 2, extra
+        line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+        assert "another MPC config" in line and says in line and "--mpc-config" in line, line
+    assert _snapshot(run) == before
+    bad = tmp_path / "mpc_bad.yaml"
+    bad.write_text("horizonn: 12\n")
+    assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "r"), "--mpc-config", str(bad)]) == 2
+    assert "horizonn" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_checkpoint_without_a_recorded_mpc_config_is_not_compared_but_warned_about(trained_unbounded, caplog):
+    from bimacppo_mpc import MPCConfig
+
+    from bimacppo_learning.checkpoint import load_checkpoint, run_meta_of
+    from bimacppo_learning.cli import check_checkpoint_fits
+    from bimacppo_planner.decision import EnvConfig
+
+    ckpt = sorted((trained_unbounded / "checkpoints").glob("*.pt"))[-1]
+    d = load_checkpoint(ckpt)
+    meta = run_meta_of(d, ckpt)
+    old = {k: v for k, v in meta.items() if k != "mpc_config"}     # written before runs recorded it
+    dims = (d["agent"]["obs_dim"], d["agent"]["nvec"])
+    with caplog.at_level("WARNING"):
+        assert check_checkpoint_fits(ckpt, *dims, old, EnvConfig.load(), MPCConfig.load()) is None
+    assert any("records no MPC config" in r.getMessage() for r in caplog.records)
+    # the recorded one is compared: the same passes, another is named
+    assert check_checkpoint_fits(ckpt, *dims, meta, EnvConfig.load(), MPCConfig.from_dict(meta["mpc_config"])) is None
+    why = check_checkpoint_fits(ckpt, *dims, meta, EnvConfig.load(), MPCConfig.load())
+    assert "another MPC config" in why and "jerk_max: None != " in why
+    broken = {**meta, "mpc_config": {**meta["mpc_config"], "horizon": -1}}
+    assert "run metadata mpc_config: key 'horizon'" in check_checkpoint_fits(ckpt, *dims, broken, EnvConfig.load(),
+                                                                              MPCConfig.load())
+
+
+def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_path):
+    from bimacppo_mpc import MPCConfig
+    from conftest import REPO
+
+    from bimacppo_learning.evaluate import resolve_mpc_config, resolve_policy
+
+    unbounded = MPCConfig.load(REPO / UNBOUNDED)
+    for f in ("policy.pt", sorted((trained_unbounded / "checkpoints").glob("*.pt"))[-1].relative_to(trained_unbounded)):
+        _, loaded, _ = resolve_policy(trained_unbounded / f)
+        assert resolve_mpc_config(loaded).to_dict() == unbounded.to_dict(), f
+        other = tmp_path / "mpc.yaml"
+        other.write_text("horizon: 12\n")
+        assert resolve_mpc_config(loaded, other).horizon == 12           # --mpc-config wins
+    # the shipped policies record none: the packaged mpc.yaml, as before (None)
+    _, shipped, _ = resolve_policy(None)
+    assert "mpc_config" not in shipped.meta and resolve_mpc_config(shipped) is None
+    # end to end: a policy file's cells run its recorded controller unless told otherwise
+    from bimacppo_learning.evaluate import evaluate
+    from bimacppo_mpc.config import DEFAULT_PATH
+
+    kw = dict(map_id="dual_lane_4way", n_svs=[0], tasks=[1], episodes=1, workers=1, random_row=False)
+    pol = trained_unbounded / "policy.pt"
+    default, explicit = evaluate(pol, **kw)[0], evaluate(pol, mpc_config=REPO / UNBOUNDED, **kw)[0]
+    packaged = evaluate(pol, mpc_config=DEFAULT_PATH, **kw)[0]
+    assert (default.comfort.ticks, default.comfort.jerk_sq) == (explicit.comfort.ticks, explicit.comfort.jerk_sq)
+    assert (default.comfort.ticks, default.comfort.jerk_sq) != (packaged.comfort.ticks, packaged.comfort.jerk_sq)

@@ -66,13 +66,31 @@ def test_cli_writes_checkpoint_policy_and_report(tmp_path, capsys):
     env_cfg = tmp_path / "env.yaml"
     env_cfg.write_text("action:\n  decision_every: 3\n")
     out = tmp_path / "bc"
-    assert main(["--out-dir", str(out), "--config", str(cfg), "--env-config", str(env_cfg), "--no-progress"]) == 0
+    from bimacppo_mpc import MPCConfig
+    from conftest import REPO
+    unbounded = REPO / "bimacppo_mpc/bimacppo_mpc/config/mpc_unbounded.yaml"
+    assert main(["--out-dir", str(out), "--config", str(cfg), "--env-config", str(env_cfg), "--no-progress",
+                 "--mpc-config", str(unbounded)]) == 0
     rep = json.loads((out / "imitation.json").read_text())
     assert rep["episodes"] == 4 and sum(rep["teacher_outcomes"].values()) == 4 and 0 <= rep["accuracy"] <= 1
     agent = load_agent(out / "checkpoint.pt")          # what bimacppo-train --init-policy reads
     pol = load_policy(out / "policy.pt")
     assert agent.obs_dim == pol.obs_dim
     assert "--init-policy" in capsys.readouterr().out
+    # both files record how the clone was made, so --init-policy checks env and MPC config like a run's
+    from bimacppo_learning.checkpoint import load_checkpoint, run_meta_of
+    from bimacppo_learning.cli import check_checkpoint_fits
+    meta = run_meta_of(load_checkpoint(out / "checkpoint.pt"), out / "checkpoint.pt")
+    assert meta["mpc_config"] == pol.meta["mpc_config"] == MPCConfig.load(unbounded).to_dict()
+    assert meta["env_config"] == EnvConfig.load(env_cfg).to_dict()
+    fits = lambda env, mpc: check_checkpoint_fits(out / "checkpoint.pt", agent.obs_dim, agent.nvec, meta, env, mpc)  # noqa: E731
+    assert fits(EnvConfig.load(env_cfg), MPCConfig.load(unbounded)) is None
+    assert "steer_rate_max: None != " in fits(EnvConfig.load(env_cfg), MPCConfig.load())
+    assert "another env config" in fits(EnvConfig.load(), MPCConfig.load(unbounded))
+    bad = tmp_path / "mpc.yaml"
+    bad.write_text("horizon: 0\n")
+    assert main(["--out-dir", str(tmp_path / "o"), "--config", str(cfg), "--mpc-config", str(bad), "--no-progress"]) == 2
+    assert "horizon" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize("edit, key", [

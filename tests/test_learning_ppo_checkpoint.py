@@ -230,3 +230,20 @@ def test_config_differences_name_every_differing_leaf():
                                               "reward.step: -0.02 != <absent>"]
     assert config_differences(saved, saved) == []
     assert config_differences({"epochs": 2}, {"epochs": 3}, "ppo") == ["ppo.epochs: 2 != 3"]
+
+
+def test_the_recorded_mpc_config_reads_back_and_missing_is_unknown():
+    from bimacppo_mpc import MPCConfig
+
+    from bimacppo_learning.checkpoint import mpc_config_of
+
+    assert mpc_config_of({"env_config": {}}, "old.pt") is None          # recorded before runs kept it
+    cfg = MPCConfig.load().replace(horizon=12, steer_rate_max=None)
+    back = mpc_config_of({"mpc_config": cfg.to_dict()}, "x.pt")
+    assert back.to_dict() == cfg.to_dict() and back.source == "x.pt (run mpc_config)"
+    partial = {k: v for k, v in cfg.to_dict().items() if k != "jerk_max"}  # a key added after it was saved
+    assert mpc_config_of({"mpc_config": partial}, "x.pt").jerk_max == MPCConfig.load().jerk_max
+    with pytest.raises(CheckpointError, match=r"^x\.pt: run metadata mpc_config: unknown key 'horizn'"):
+        mpc_config_of({"mpc_config": {"horizn": 12}}, "x.pt")
+    with pytest.raises(CheckpointError, match=r"^x\.pt: run metadata mpc_config: key 'horizon'"):
+        mpc_config_of({"mpc_config": {"horizon": 0}}, "x.pt")

@@ -8,6 +8,7 @@ leaves the previous file intact.  Any unreadable, truncated, foreign or mis-shap
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -79,6 +80,23 @@ def run_meta_of(d: Mapping[str, Any], path: str | os.PathLike) -> dict:
     if not isinstance(meta, Mapping):
         raise CheckpointError(path, f"run metadata is a {type(meta).__name__}, expected a dict")
     return dict(meta)
+
+
+def mpc_config_of(meta: Mapping[str, Any], path: str | os.PathLike):
+    """The NMPC config a run was trained with (its run metadata's ``mpc_config``, read as an
+    overlay of the packaged mpc.yaml so that a key added since takes its default), or None when
+    the metadata records none (a file written before runs recorded it: the controller is unknown).
+    A recorded config that is no longer valid is a CheckpointError naming the file and key."""
+    raw = meta.get("mpc_config")
+    if raw is None:
+        return None
+    from bimacppo_mpc import MPCConfig
+
+    try:
+        cfg = MPCConfig.from_dict(raw, source="mpc_config")
+    except ValueError as exc:      # "<path>: run metadata mpc_config: key 'horizon' must be ..."
+        raise CheckpointError(path, f"run metadata {exc}") from None
+    return dataclasses.replace(cfg, source=f"{path} (run mpc_config)")
 
 
 def config_differences(saved: Any, current: Any, prefix: str = "") -> list[str]:

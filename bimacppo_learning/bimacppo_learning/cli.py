@@ -19,14 +19,15 @@ CURRICULA = ("bimab", "fixed", "random", "manual", "rd")
 MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
 
 
-def make_env(map_id: str, env_config: EnvConfig, mpc_solver: str, slow_svs: int = 0):
+def make_env(map_id: str, env_config: EnvConfig, mpc_solver: str, slow_svs: int = 0, mpc_config=None):
     """The training env's picklable factory (one env when called, ``make_batch(n)`` for the
     batched vector env). Every curriculum draws all three tasks (its arms); a map with fewer (the
     straight road has only "straight") folds them onto its own, and ``slow_svs`` > 0 slows up to
-    that many SVs per episode (paper §IV-C overtaking): both rules live in ``batch.py``."""
+    that many SVs per episode (paper §IV-C overtaking): both rules live in ``batch.py``.
+    ``mpc_config`` (an MPCConfig; None: the packaged mpc.yaml) is the NMPC under the planner."""
     from .vec_env import EnvFactory
 
-    return EnvFactory(map_id, env_config, mpc_solver, slow_svs)
+    return EnvFactory(map_id, env_config, mpc_solver, slow_svs, mpc_config=mpc_config)
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -53,6 +54,10 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-policy", type=Path, default=None,
                    help="start from this training checkpoint (fine-tuning, e.g. overtaking)")
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast", help="NMPC solver in the loop")
+    p.add_argument("--mpc-config", type=Path, default=None,
+                   help="YAML overlaying bimacppo_mpc/config/mpc.yaml (lists only what it changes, e.g. "
+                        "mpc_unbounded.yaml); recorded in the checkpoints and policy.pt, and --resume / "
+                        "--init-policy need the one the checkpoint records; default: the packaged one")
     p.add_argument("--slow-svs", type=int, default=0, metavar="N",
                    help="slow down 0..N SVs per episode (drawn from the reset seed), for overtaking "
                         "fine-tunes on three_lane_straight (paper: 2); default 0")
@@ -67,11 +72,14 @@ def fail(prog: str, message: Any) -> int:
     return 2
 
 
-def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_cfg: EnvConfig) -> str | None:
-    """Why a checkpoint cannot continue (--resume) or start (--init-policy) a run with ``env_cfg``:
-    another observation or action size, or another env config (a checkpoint that records none was
-    made with the packaged one, the rule deployment follows); None if it fits."""
-    from .checkpoint import config_differences
+def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_cfg: EnvConfig,
+                          mpc_cfg=None) -> str | None:
+    """Why a checkpoint cannot continue (--resume) or start (--init-policy) a run with ``env_cfg``
+    and the NMPC ``mpc_cfg``: another observation or action size, another env config (a checkpoint
+    that records none was made with the packaged one, the rule deployment follows) or another MPC
+    config (one that records none is of unknown controller: not compared, a warning); None if it
+    fits. ``mpc_cfg`` None skips the MPC comparison."""
+    from .checkpoint import CheckpointError, config_differences, mpc_config_of
 
     if (int(obs_dim), tuple(int(n) for n in nvec)) != (env_cfg.obs_dim, tuple(env_cfg.nvec)):
         return (f"{path}: its agent takes observations of size {obs_dim} and actions nvec={list(nvec)}; "
@@ -85,10 +93,25 @@ def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_c
     if diff:
         return (f"{path}: was trained with another env config ({'; '.join(diff)}; checkpoint != this run): "
                 "pass the --env-config it was trained with")
+    if mpc_cfg is None:
+        return None
+    try:
+        saved_mpc = mpc_config_of(run_meta_, path)
+    except CheckpointError as exc:
+        return str(exc)
+    if saved_mpc is None:
+        logging.getLogger(__name__).warning(
+            "%s records no MPC config (written before runs recorded theirs): its controller is unknown and "
+            "not compared with this run's (%s)", path, mpc_cfg.source)
+        return None
+    diff = config_differences(saved_mpc.to_dict(), mpc_cfg.to_dict())
+    if diff:
+        return (f"{path}: was trained with another MPC config ({'; '.join(diff)}; checkpoint != this run): "
+                "pass the --mpc-config it was trained with")
     return None
 
 
-def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path):
+def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg):
     """Every check a run can fail before it starts, so that a refused run leaves its directory as
     it was. Returns (error message or None, the --init-policy agent or None)."""
     from .checkpoint import (CheckpointError, config_differences, latest_checkpoint, load_checkpoint,
@@ -104,7 +127,7 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path):
         if args.resume and latest is not None:
             d = load_checkpoint(latest)
             why = check_checkpoint_fits(latest, d["agent"]["obs_dim"], d["agent"]["nvec"],
-                                        run_meta_of(d, latest), env_cfg)
+                                        run_meta_of(d, latest), env_cfg, mpc_cfg)
             if why:
                 return why, None
             try:
@@ -120,7 +143,7 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path):
             path = args.init_policy
             meta = run_meta_of(load_checkpoint(path), path)
             agent = load_agent(path)
-            why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg)
+            why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg, mpc_cfg)
             if why:
                 return why, None
     except CheckpointError as exc:
@@ -133,6 +156,8 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path):
 def train_main(argv=None) -> int:
     args = _train_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    from bimacppo_mpc import MPCConfig
+
     from .checkpoint import CheckpointError
     from .ppo_config import load_config
     from .trainer import Trainer
@@ -144,6 +169,7 @@ def train_main(argv=None) -> int:
         return fail(prog, f"--slow-svs must be in 0..3 (at most N_sv^max SVs), got {args.slow_svs}")
     try:
         env_cfg = EnvConfig.load(args.env_config)
+        mpc_cfg = MPCConfig.load(args.mpc_config)
         train_over = {"seed": args.seed}
         if args.num_envs is not None:
             train_over["num_envs"] = args.num_envs
@@ -157,15 +183,16 @@ def train_main(argv=None) -> int:
     except (ConfigError, ValueError, OSError) as exc:
         return fail(prog, exc)
     run_dir = args.run_dir or Path("runs") / f"{args.curriculum}-s{args.seed}"
-    why, agent = _preflight(args, env_cfg, pcfg, run_dir)
+    why, agent = _preflight(args, env_cfg, pcfg, run_dir, mpc_cfg)
     if why:
         return fail(prog, why)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "run.json").write_text(json.dumps({
         "curriculum": args.curriculum, "episodes": args.episodes, "seed": args.seed, "map": args.map,
-        "mpc": args.mpc, "slow_svs": args.slow_svs, "env_config": env_cfg.to_dict(), "argv": sys.argv[1:] if argv is None else list(argv),
+        "mpc": args.mpc, "slow_svs": args.slow_svs, "env_config": env_cfg.to_dict(),
+        "mpc_config": mpc_cfg.to_dict(), "argv": sys.argv[1:] if argv is None else list(argv),
     }, indent=2))
-    env_fn = make_env(args.map, env_cfg, args.mpc, args.slow_svs)
+    env_fn = make_env(args.map, env_cfg, args.mpc, args.slow_svs, mpc_config=mpc_cfg)
     from bimacppo_sim import load_map
 
     tasks = sorted(load_map(args.map).turns)
@@ -173,7 +200,7 @@ def train_main(argv=None) -> int:
         print(f"bimacppo-train: map {args.map!r} has only the task(s) {tasks}: the curriculum's task "
               "arms all run as that task (its arm statistics are then not meaningful)", file=sys.stderr)
     trainer = Trainer(env_fn, sched, run_dir, pcfg, tcfg, agent=agent,
-                      run_meta=run_meta(env_cfg, args.curriculum, args.map, args.seed, args.mpc))
+                      run_meta=run_meta(env_cfg, args.curriculum, args.map, args.seed, args.mpc, mpc_cfg))
     try:
         res = trainer.train(args.episodes, resume=args.resume)
     except CheckpointError as exc:
@@ -188,10 +215,17 @@ def train_main(argv=None) -> int:
     return 0
 
 
-def run_meta(env_cfg: EnvConfig, curriculum: str, map_id: str, seed: int, mpc: str) -> dict:
+def run_meta(env_cfg: EnvConfig, curriculum: str, map_id: str, seed: int, mpc: str, mpc_cfg=None) -> dict:
     """How a run was trained, as stored in its checkpoints and exported policy (Trainer.run_meta):
-    deployment (planner node, evaluation) rebuilds the same observation and decoding from it."""
-    return {"env_config": env_cfg.to_dict(), "curriculum": curriculum, "map": map_id, "seed": seed, "mpc": mpc}
+    deployment (planner node, evaluation) rebuilds the same observation and decoding from it, and
+    evaluation runs the NMPC it was trained with (``mpc_cfg``; None: the packaged mpc.yaml, what
+    the env then runs)."""
+    if mpc_cfg is None:
+        from bimacppo_mpc import MPCConfig
+
+        mpc_cfg = MPCConfig.load()
+    return {"env_config": env_cfg.to_dict(), "mpc_config": mpc_cfg.to_dict(), "curriculum": curriculum,
+            "map": map_id, "seed": seed, "mpc": mpc}
 
 
 def _eval_parser() -> argparse.ArgumentParser:
@@ -214,7 +248,8 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-random-row", action="store_true", help="skip the random-policy baseline rows")
     p.add_argument("--mpc-config", type=Path, default=None,
                    help="YAML overlaying bimacppo_mpc/config/mpc.yaml (e.g. mpc_unbounded.yaml for a policy "
-                        "trained without the rate bounds); default: the packaged one")
+                        "trained without the rate bounds); default: the one the policy file records, else "
+                        "the packaged one")
     p.add_argument("--seed-set", choices=("validation", "test"), default="test",
                    help="scenario seeds: validation (for choosing configs, checkpoints, variants) or test "
                         "(reporting only); disjoint sets, default test")

@@ -160,15 +160,12 @@ def _materialise(spec: tuple, env_config) -> tuple[str, Any]:
 
 def _run_cell(job: tuple) -> tuple:
     spec, env_config, map_id, task, n_sv, episodes, mpc_solver, seed_set, mpc_config = job
-    from bimacppo_mpc import MPCConfig
-
     from .env import IntersectionEnv
 
     label, policy = _materialise(spec, env_config)
     actor = as_actor(policy)
     begin = getattr(policy, "begin_episode", None)
-    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver,
-                          mpc_config=None if mpc_config is None else MPCConfig.load(mpc_config))
+    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver, mpc_config=mpc_config)
     nvec = tuple(int(n) for n in env.cfg.nvec)
     counts: Counter = Counter()
     returns = []
@@ -295,6 +292,24 @@ def resolve_policy(policy: Any, env_config=None) -> tuple[tuple, Any, Any]:
     return spec, loaded, cfg
 
 
+def resolve_mpc_config(loaded: Any, mpc_config: Any = None):
+    """The NMPC config to evaluate ``loaded`` (a resolved policy) with: ``mpc_config`` (an
+    MPCConfig or a YAML path) when given, else the one a policy file records, else None (the
+    packaged mpc.yaml; a policy that records none was trained before runs recorded theirs)."""
+    from bimacppo_mpc import MPCConfig
+    from bimacppo_planner.policy import Policy
+
+    from .checkpoint import mpc_config_of
+
+    if isinstance(mpc_config, MPCConfig):
+        return mpc_config
+    if mpc_config is not None:
+        return MPCConfig.load(mpc_config)
+    if isinstance(loaded, Policy):
+        return mpc_config_of(loaded.meta, loaded.path)
+    return None
+
+
 def check_cells(map_id: str, n_svs: Iterable[int], tasks: Iterable[int]) -> None:
     """Every requested cell exists on the map (ValueError naming the first one that does not)."""
     from bimacppo_sim import load_map
@@ -316,14 +331,15 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
              tasks: Iterable[int] = (0, 1, 2), episodes: int = 100, workers: int = 2,
              mpc_solver: str = "fast", progress: Callable | None = None, *,
              env_config: Any = None, random_row: bool = True, random_seed: int = 0,
-             seed_set: str = "test", mpc_config: str | None = None) -> list[CellResult]:
+             seed_set: str = "test", mpc_config: Any = None) -> list[CellResult]:
     """Run the protocol; see the module docstring.
 
     ``env_config`` (EnvConfig, YAML path or dict) replaces the policy's own (a policy file's
     stored one, else the packaged env.yaml). ``random_row`` adds the random policy's cells
     (``policy == RANDOM``) on the same env config and scenarios; they are cached per process.
-    ``mpc_config`` (a YAML overlaying the packaged mpc.yaml) sets the NMPC of every cell: a
-    policy is evaluated with the controller it was trained with.
+    ``mpc_config`` (an MPCConfig, or a YAML overlaying the packaged mpc.yaml) sets the NMPC of
+    every cell, so that a policy is evaluated with the controller it was trained with; by default
+    that is the one its file records (``mpc_config`` in its run metadata), else the packaged one.
     Objects that cannot be pickled run in this process whatever ``workers`` says (a warning).
     ``progress(cell)`` is called as each cell finishes. Returns the policy's cells, then the
     random ones, each sorted by (task, N_sv).
@@ -336,18 +352,16 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
     if int(workers) < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     check_cells(map_id, n_svs, tasks)
-    spec, _, cfg = resolve_policy(policy, env_config)
+    spec, loaded, cfg = resolve_policy(policy, env_config)
     cells = [(t, n) for t in tasks for n in n_svs]
-    if mpc_config is not None:
-        from bimacppo_mpc import MPCConfig
-        MPCConfig.load(mpc_config)          # a bad file fails here, once, not in every worker
-        mpc_config = str(mpc_config)
+    mpc_config = resolve_mpc_config(loaded, mpc_config)   # a bad file fails here, once, not in every worker
+    mpc_key = None if mpc_config is None else mpc_config.to_dict()
     jobs = [(spec, cfg, map_id, t, n, int(episodes), mpc_solver, seed_set, mpc_config) for t, n in cells]
     results: list[CellResult] = []
     if random_row:
         for t, n in cells:
             key = json.dumps([map_id, cfg.to_dict(), t, n, int(episodes), mpc_solver, int(random_seed), seed_set,
-                              mpc_config])
+                              mpc_key])
             if key in _RANDOM_CACHE:
                 results.append(_RANDOM_CACHE[key])
             else:
@@ -358,7 +372,7 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
         cell = CellResult(r[1], r[2], r[3], r[4], r[0], r[5], r[6], r[7])
         if cell.policy == RANDOM:
             _RANDOM_CACHE[json.dumps([map_id, cfg.to_dict(), cell.task, cell.n_sv, int(episodes), mpc_solver,
-                                      int(random_seed), seed_set, mpc_config])] = cell
+                                      int(random_seed), seed_set, mpc_key])] = cell
         results.append(cell)
         if progress:
             progress(cell)

@@ -187,8 +187,10 @@ def behaviour_clone(agent, O, A, R, cfg: CloneConfig, seed: int = 0, progress: C
     return {"cross_entropy": ce, "value_mse": vl, "accuracy": acc, "samples": int(len(X))}
 
 
-def checkpoint_payload(agent, pcfg, tcfg) -> dict:
-    """A training checkpoint (trainer format) holding only the agent: what ``--init-policy`` reads."""
+def checkpoint_payload(agent, pcfg, tcfg, meta: dict | None = None) -> dict:
+    """A training checkpoint (trainer format) holding only the agent: what ``--init-policy`` reads.
+    ``meta`` is how the clone was made (env and MPC config, ...), stored as a run's metadata so
+    that ``--init-policy`` checks it like a training checkpoint's."""
     import torch
 
     from .checkpoint import CHECKPOINT_FORMAT, FORMAT_VERSION
@@ -198,7 +200,7 @@ def checkpoint_payload(agent, pcfg, tcfg) -> dict:
             "config": config_to_dict(pcfg, tcfg), "scheduler_state": json.dumps({}),
             "counters": {"episodes": 0, "env_steps": 0, "updates": 0},
             "rng": {"episode_rng": np.random.default_rng(0).bit_generator.state, "torch": torch.get_rng_state()},
-            "success_window": []}
+            "success_window": [], "run": json.dumps(dict(meta or {}))}
 
 
 def main(argv=None) -> int:
@@ -214,10 +216,14 @@ def main(argv=None) -> int:
     p.add_argument("--episodes", type=int, default=None, help="override the config's teacher episodes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast")
+    p.add_argument("--mpc-config", type=Path, default=None,
+                   help="YAML overlaying bimacppo_mpc/config/mpc.yaml: the NMPC the teacher drives through "
+                        "(and PPO will train with), recorded in the outputs; default: the packaged one")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     import torch
+    from bimacppo_mpc import MPCConfig
     from tqdm.auto import tqdm
 
     from .checkpoint import export_policy, save_checkpoint
@@ -233,7 +239,8 @@ def main(argv=None) -> int:
                 raise ConfigError("--episodes must be >= 1")
             cfg = ImitationConfig(args.episodes, cfg.seed_base, cfg.n_sv_probs, cfg.teacher, cfg.clone, cfg.source)
         pcfg, tcfg = load_config(args.ppo_config, train={"seed": args.seed})
-        env = IntersectionEnv(map_id=args.map, config=env_cfg, mpc_solver=args.mpc)
+        mpc_cfg = MPCConfig.load(args.mpc_config)
+        env = IntersectionEnv(map_id=args.map, config=env_cfg, mpc_solver=args.mpc, mpc_config=mpc_cfg)
     except (ConfigError, ValueError, OSError) as exc:
         print(f"bimacppo-imitate: {exc}", file=sys.stderr)
         return 2
@@ -253,9 +260,9 @@ def main(argv=None) -> int:
                             progress=lambda ce: (bar.update(1), bar.set_postfix(ce=f"{ce:.3f}")))
     bar.close()
     ckpt = args.out_dir / "checkpoint.pt"
-    save_checkpoint(ckpt, checkpoint_payload(agent, pcfg, tcfg))
-    meta = {"env_config": env_cfg.to_dict(), "curriculum": "imitation", "map": args.map, "seed": args.seed,
-            "mpc": args.mpc}
+    meta = {"env_config": env_cfg.to_dict(), "mpc_config": mpc_cfg.to_dict(), "curriculum": "imitation",
+            "map": args.map, "seed": args.seed, "mpc": args.mpc}
+    save_checkpoint(ckpt, checkpoint_payload(agent, pcfg, tcfg, meta))
     export_policy(agent, args.out_dir / "policy.pt", meta=meta)
     report = {"teacher_outcomes": outcomes, "episodes": cfg.episodes, **stats, "collect_s": round(t_collect, 1),
               "total_s": round(time.time() - t0, 1), "config": cfg.source, "seed": args.seed, "map": args.map}

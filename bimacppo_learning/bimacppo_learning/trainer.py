@@ -60,9 +60,10 @@ class Trainer:
         ppo_config, train_config: default to the packaged config/ppo.yaml.
         agent: a prebuilt PPO (else one is built from the env's spaces).
         on_episode: optional callback(record) after each finished episode (hooks for tests/CLI).
-        run_meta: how the run was set up (env config, curriculum, map, seed, ...; JSON-able): saved
-            in every checkpoint under "run" and in the exported policy's metadata, so that
-            deployment rebuilds the same observation and decoding and a resume can check it.
+        run_meta: how the run was set up (env and MPC config, curriculum, map, seed, ...; JSON-able):
+            saved in every checkpoint under "run" and in the exported policy's metadata, so that
+            deployment rebuilds the same observation and decoding, evaluation runs the same NMPC
+            and a resume can check both.
     """
 
     def __init__(self, env_fn: Callable[[], Any], scheduler: Any, run_dir: str | os.PathLike,

@@ -22,6 +22,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 
+from bimacppo_mpc import MPCConfig
 from bimacppo_planner.decision import EnvConfig
 
 from .batch import IntersectionBatch
@@ -194,14 +195,15 @@ class EnvFactory:
     mpc_solver: str = "fast"
     slow_svs: int = 0
     workers: int = 1
+    mpc_config: MPCConfig | None = None      # None: the packaged mpc.yaml
 
     def __call__(self):
         from .env import IntersectionEnv
 
         return IntersectionEnv(map_id=self.map_id, config=self.env_config, mpc_solver=self.mpc_solver,
-                               slow_svs=self.slow_svs)
+                               slow_svs=self.slow_svs, mpc_config=self.mpc_config)
 
     def make_batch(self, num_envs: int, workers: int | None = None) -> BatchedVectorEnv:
         return BatchedVectorEnv(num_envs, workers=self.workers if workers is None else workers,
                                 map_id=self.map_id, config=self.env_config, mpc_solver=self.mpc_solver,
-                                slow_svs=self.slow_svs)
+                                slow_svs=self.slow_svs, mpc_config=self.mpc_config)
