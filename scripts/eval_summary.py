@@ -11,7 +11,8 @@ import csv
 import statistics
 import sys
 
-TASKS = ("left", "straight", "right")
+from bimacppo_common.conventions import TASKS
+
 
 
 def read(path: str) -> dict[tuple[str, int], float]:

@@ -4,8 +4,9 @@ import math
 import numpy as np
 import pytest
 
+from bimacppo_common.conventions import wrap_angle
 from bimacppo_planner.decision import (ActionConfig, ConfigError, EnvConfig, ObservationConfig, WaypointTracker,
-                                       decode_action, observe, wrap_angle)
+                                       decode_action, observe)
 
 
 def test_wrap_angle_stays_in_half_open_interval():

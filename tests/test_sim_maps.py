@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import yaml
 
-from bimacppo_sim import TASKS, load_map
+from bimacppo_common.conventions import TASKS
+from bimacppo_sim import load_map
 from bimacppo_sim.road import MAP_DIR
 
 

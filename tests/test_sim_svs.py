@@ -3,7 +3,8 @@ from collections import Counter
 
 import pytest
 
-from bimacppo_sim import TASKS, Scenario, World, load_map, run_episode
+from bimacppo_common.conventions import TASKS
+from bimacppo_sim import Scenario, World, load_map, run_episode
 
 
 @pytest.mark.parametrize("mid", ["dual_lane_4way", "single_lane_4way"])

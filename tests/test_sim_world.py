@@ -6,7 +6,8 @@ import random
 import numpy as np
 import pytest
 
-from bimacppo_sim import TASKS, Scenario, World, load_map, make_driver, run_episode
+from bimacppo_common.conventions import TASKS
+from bimacppo_sim import Scenario, World, load_map, make_driver, run_episode
 from bimacppo_sim.geometry import box_corners, boxes_overlap
 
 

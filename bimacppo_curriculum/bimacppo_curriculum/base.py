@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-N_TASKS = 3  # left, straight, right: the paper's arms j = 0, 1, 2 (bimacppo_sim.TASKS)
+N_TASKS = 3  # left, straight, right: the paper's arms j = 0, 1, 2 (bimacppo_common.conventions.TASKS)
 STATE_VERSION = 1
 
 

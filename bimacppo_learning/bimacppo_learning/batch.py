@@ -28,9 +28,10 @@ from typing import Any, Mapping
 import numpy as np
 from gymnasium.utils import seeding
 
+from bimacppo_common.conventions import TASKS
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, observe, step_reward
-from bimacppo_sim import TASKS, Scenario, World, load_map
+from bimacppo_sim import Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
 from bimacppo_sim.drivers import junction_distance, junction_threatened
 

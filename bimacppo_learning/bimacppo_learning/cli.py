@@ -261,7 +261,7 @@ def _eval_parser() -> argparse.ArgumentParser:
 
 def evaluate_main(argv=None) -> int:
     args = _eval_parser().parse_args(argv)
-    from bimacppo_sim import TASKS
+    from bimacppo_common.conventions import TASKS
 
     from .checkpoint import CheckpointError
     from .evaluate import EvaluationError, check_cells, evaluate, resolve_policy, to_markdown, write_outputs

@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
-from bimacppo_sim import TASKS
+from bimacppo_common.conventions import OUTCOMES, TASKS
 
 from bimacppo_planner.policy import CheckpointError
 
@@ -44,7 +44,6 @@ from .comfort import Comfort
 
 EVAL_SEED_BASE = 1_000_000          # the test set
 SEED_SETS = {"test": EVAL_SEED_BASE, "validation": 2_000_000}
-OUTCOMES = ("success", "collision", "timeout")
 POLICY = "policy"          # CellResult.policy of the evaluated policy's cells
 RANDOM = "random"          # ... and of the random baseline's
 

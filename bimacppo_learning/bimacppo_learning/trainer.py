@@ -25,6 +25,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import torch
 
+from bimacppo_common.conventions import OUTCOMES
+
 from .checkpoint import (CHECKPOINT_FORMAT, FORMAT_VERSION, CheckpointError, checkpoint_path,
                          export_policy, latest_checkpoint, list_checkpoints, load_checkpoint,
                          restore_agent, save_checkpoint)
@@ -34,7 +36,6 @@ from .rollout import RolloutBuffer, info_at, make_vector_env, reset_each, reset_
 
 log = logging.getLogger(__name__)
 
-OUTCOMES = ("success", "collision", "timeout")
 SEED_HIGH = 2 ** 31 - 1
 
 

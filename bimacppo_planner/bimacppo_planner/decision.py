@@ -15,19 +15,11 @@ from typing import Any, Mapping
 import numpy as np
 
 from bimacppo_common import config
+from bimacppo_common.conventions import wrap_angle
 from bimacppo_common.config import ConfigError, Packaged, config_class, invalid, setting  # noqa: F401  (ConfigError: re-exported)
 
-TWO_PI = 2.0 * math.pi
 TIMEOUT_MODES = ("terminal", "truncate")
 ZERO_SPEED_MODES = ("waypoint", "hold")
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap to (-pi, pi]: heading differences must not jump by 2*pi (observation and MPC)."""
-    a = math.fmod(a + math.pi, TWO_PI)
-    if a <= 0.0:
-        a += TWO_PI
-    return a - math.pi
 
 
 # Every default is written once, in config/env.yaml; a variant file or dict overlays it

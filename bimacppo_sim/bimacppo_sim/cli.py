@@ -11,8 +11,10 @@ import time
 import tracemalloc
 from collections import Counter
 
+from bimacppo_common.conventions import TASKS
+
 from .drivers import DRIVERS, make_driver, run_episode
-from .road import TASKS, available_maps, load_map
+from .road import available_maps, load_map
 from .world import Scenario, World
 
 

@@ -9,16 +9,9 @@ import math
 
 import numpy as np
 
-TWO_PI = 2.0 * math.pi
+from bimacppo_common.conventions import wrap_angle
+
 BEZIER_CIRCLE_K = 4.0 / 3.0 * math.tan(math.pi / 8.0)  # cubic Bezier ~ quarter circle
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap to (-pi, pi] (architecture convention)."""
-    a = math.fmod(a + math.pi, TWO_PI)
-    if a <= 0.0:
-        a += TWO_PI
-    return a - math.pi
 
 
 def bezier_connector(p0, h0, p1, h1, step=0.25):

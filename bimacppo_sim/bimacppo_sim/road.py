@@ -17,10 +17,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import yaml
 
+from bimacppo_common.conventions import TASKS
+
 from .geometry import MapFrame, Path, bezier_connector, point_segment_distances, polyline_crossings
 
 MAP_DIR = pathlib.Path(__file__).resolve().parent / "maps"
-TASKS = ("left", "straight", "right")
 ARMS = {"north": (0.0, 1.0), "south": (0.0, -1.0), "east": (1.0, 0.0), "west": (-1.0, 0.0)}
 
 

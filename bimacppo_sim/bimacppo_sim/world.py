@@ -17,10 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import STYLES, WorldConfig
-from .geometry import box_corners, boxes_overlap, wrap_angle
-from .road import ARMS, TASKS, RoadMap, load_map
+from bimacppo_common.conventions import OUTCOMES, TASKS, wrap_angle
 
-OUTCOMES = ("success", "collision", "timeout")
+from .geometry import box_corners, boxes_overlap
+from .road import ARMS, RoadMap, load_map
 
 
 @dataclass(frozen=True)

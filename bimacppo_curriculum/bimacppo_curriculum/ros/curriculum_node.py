@@ -22,12 +22,12 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
+from bimacppo_common.conventions import TASKS
 from bimacppo_curriculum import make_scheduler
 from bimacppo_interfaces import contract as I
 from bimacppo_ros_common.params import param_range
 from bimacppo_ros_common.runtime import guarded, run_single
 
-TASKS = ("left", "straight", "right")  # architecture.md: task index j -> name
 RECENT_TICKS = 256
 """State stamps remembered to tell a new tick from a re-send of one already seen."""
 

@@ -16,7 +16,7 @@ curves), ``results`` (the markdown page and figures), ``cli``.
 This package namespace re-exports their public names.
 """
 from bimacppo_common.config import ConfigError  # noqa: F401
-from .config import (CONFIG_PATH, CURRICULA, DRIVERS, MAPS, METHOD_NAMES, OUTCOMES, EvalSection,  # noqa: F401
+from .config import (CONFIG_PATH, CURRICULA, DRIVERS, MAPS, METHOD_NAMES, EvalSection,  # noqa: F401
                      ExperimentConfig, ExperimentError, OvertakeSection, ReportSection, TrainSection,
                      check_methods, load_experiment_config)
 from .runs import (RunStatus, eval_is_fresh, has_checkpoint, last_episode, protocol_cells,  # noqa: F401

@@ -20,7 +20,7 @@ from typing import Mapping
 
 from bimacppo_common import config
 from bimacppo_common.config import Packaged, config_class, invalid, runtime, setting
-from bimacppo_sim import TASKS
+from bimacppo_common.conventions import TASKS
 
 from ..ppo_config import VECTOR_MODES
 
@@ -32,7 +32,6 @@ MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
 DRIVERS = ("go", "yield")
 METHOD_NAMES = {"bimab": "BiM-ACPPO", "fixed": "Fixed PPO", "random": "Random CPPO",
                 "manual": "Manual CPPO", "rd": "RD-ACPPO", "go": 'scripted "go"', "yield": 'scripted "yield"'}
-OUTCOMES = ("success", "collision", "timeout")
 _N_SV = dict(lo=0, hi=3)
 _CPUS = dict(lo=1, hi=256)
 

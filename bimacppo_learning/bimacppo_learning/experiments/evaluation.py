@@ -8,7 +8,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Callable
 
-from bimacppo_sim import TASKS
+from bimacppo_common.conventions import TASKS
 
 from .config import METHOD_NAMES, ExperimentConfig, ExperimentError
 from .pool import Cluster, Job

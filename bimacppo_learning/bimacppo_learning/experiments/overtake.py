@@ -9,9 +9,9 @@ from typing import Callable
 
 import numpy as np
 
-from bimacppo_sim import TASKS
+from bimacppo_common.conventions import OUTCOMES, TASKS
 
-from .config import OUTCOMES, ExperimentConfig, ExperimentError
+from .config import ExperimentConfig, ExperimentError
 from .pool import Cluster, Job
 from .runs import has_checkpoint, last_episode, read_eval_csv, read_history, run_status
 from .traffic import draw_n_slow, make_overtake_env

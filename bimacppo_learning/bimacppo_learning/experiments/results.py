@@ -9,7 +9,7 @@ from typing import Mapping
 
 import numpy as np
 
-from bimacppo_sim import TASKS
+from bimacppo_common.conventions import TASKS
 
 from .config import METHOD_NAMES, ExperimentConfig
 from .runs import eval_is_fresh, read_eval_csv, read_history, run_status

@@ -17,9 +17,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from bimacppo_sim import TASKS
+from bimacppo_common.conventions import OUTCOMES, TASKS
 
-from .config import OUTCOMES, ExperimentConfig, ExperimentError
+from .config import ExperimentConfig, ExperimentError
 
 
 def read_history(run_dir: str | os.PathLike) -> list[dict]:

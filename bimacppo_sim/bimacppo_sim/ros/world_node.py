@@ -40,10 +40,11 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_srvs.srv import Trigger
 
+from bimacppo_common.conventions import TASKS
 from bimacppo_interfaces import contract as I
 from bimacppo_ros_common.params import ConfigError, param_range
 from bimacppo_ros_common.runtime import guarded, one_line, run_single
-from bimacppo_sim import TASKS, Scenario, World, load_map
+from bimacppo_sim import Scenario, World, load_map
 
 MODES = ("lockstep", "realtime")
 
