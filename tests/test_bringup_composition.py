@@ -43,6 +43,13 @@ def launch_stubs(monkeypatch):
     return mods
 
 
+def _launch_true(value) -> bool:
+    """IfCondition's reading of a substitution's value (launch accepts true/false, any case)."""
+    text = str(value).strip().lower()
+    assert text in ("true", "false"), f"IfCondition would refuse {value!r}"
+    return text == "true"
+
+
 def _launched(mods, given: dict) -> dict:
     """node name -> (package, executable, parameters) of what `ros2 launch ... given` starts."""
     import importlib.util
@@ -65,13 +72,13 @@ def _launched(mods, given: dict) -> dict:
     out = {}
     for node in (a for a in actions if isinstance(a, mods["launch_ros.actions"].Node)):
         cond = node.kwargs.get("condition")
-        if cond is not None and not C.parse_switch(value(cond.args[0])):
+        if cond is not None and not _launch_true(value(cond.args[0])):
             continue
         params = {}
         for p in node.kwargs["parameters"]:
             if isinstance(p, str):
                 section = yaml.safe_load(open(p))[node.kwargs["name"]]["ros__parameters"]
-                params.update(C._flat(section))
+                params.update(C.flatten(section))
             else:
                 params.update({k: value(v) for k, v in p.items()})
         out[node.kwargs["name"]] = (node.kwargs["package"], node.kwargs["executable"], params)
@@ -81,7 +88,7 @@ def _launched(mods, given: dict) -> dict:
 def _graphed(argv: list) -> dict:
     """node name -> (package, executable, parameters) of what `bimacppo-graph argv` builds."""
     defaults = C.defaults(graph.share_of)
-    values = graph.argument_values(graph.build_parser(defaults).parse_args(argv), defaults)
+    values = graph.argument_values(graph.build_parser(defaults).parse_args(argv))
     return {e.name: (e.package, e.executable, params) for e, params in C.compose(values, graph.share_of)}
 
 
@@ -131,7 +138,7 @@ def test_graph_nodes_run_with_the_composed_parameters(tmp_path):
     rclpy = pytest.importorskip("rclpy")
     defaults = C.defaults(graph.share_of)
     values = graph.argument_values(graph.build_parser(defaults).parse_args(
-        ["--output", str(tmp_path / "run.mcap"), "--episodes", "4"]), defaults)
+        ["--output", str(tmp_path / "run.mcap"), "--episodes", "4"]))
     rclpy.init()
     nodes = []
     try:

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Tuple
 
 import yaml
 
@@ -106,23 +106,17 @@ def entry(name: str) -> NodeEntry:
     raise KeyError(f"no node {name!r} in the composition (nodes: {[e.name for e in NODES]})")
 
 
-def argument(name: str) -> Argument:
-    for a in ARGUMENTS:
-        if a.name == name:
-            return a
-    raise KeyError(f"no argument {name!r} (arguments: {[a.name for a in ARGUMENTS]})")
-
-
 def params_path(e: NodeEntry, share_of: ShareOf) -> str:
     pkg, name = e.params_file
     return os.path.join(share_of(pkg), "config", name)
 
 
-def _flat(d: Mapping, prefix: str = "") -> Dict[str, object]:
+def flatten(d: Mapping, prefix: str = "") -> Dict[str, object]:
+    """Nested parameter mappings as dotted names, the way rcl reads a params file."""
     out: Dict[str, object] = {}
     for k, v in d.items():
         if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
+            out.update(flatten(v, f"{prefix}{k}."))
         else:
             out[f"{prefix}{k}"] = v
     return out
@@ -137,7 +131,7 @@ def file_parameters(e: NodeEntry, share_of: ShareOf) -> Dict[str, object]:
     params = section.get("ros__parameters") if isinstance(section, dict) else None
     if not isinstance(params, dict):
         raise ValueError(f"{path}: no '{e.name}: ros__parameters:' section")
-    return _flat(params)
+    return flatten(params)
 
 
 def defaults(share_of: ShareOf) -> Dict[str, object]:
@@ -179,18 +173,3 @@ def compose(values: Mapping[str, object], share_of: ShareOf) -> List[Tuple[NodeE
     return [(e, {**file_parameters(e, share_of), **composed_parameters(e, values)})
             for e in NODES if enabled(e, values)]
 
-
-def parse_switch(text) -> bool:
-    """A switch's value as launch writes it (``true``/``false``, any case) or a bool."""
-    if isinstance(text, bool):
-        return text
-    t = str(text).strip().lower()
-    if t in ("true", "1", "yes", "on"):
-        return True
-    if t in ("false", "0", "no", "off"):
-        return False
-    raise ValueError(f"a switch is true or false, got {text!r}")
-
-
-def switch_names() -> Sequence[str]:
-    return [a.name for a in ARGUMENTS if not a.targets]

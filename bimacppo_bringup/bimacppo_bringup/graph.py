@@ -84,7 +84,7 @@ def build_parser(defaults) -> argparse.ArgumentParser:
     return ap
 
 
-def argument_values(args, defaults) -> dict:
+def argument_values(args) -> dict:
     """The composition's argument values from parsed flags (switches included)."""
     values = {a.name: getattr(args, a.name) for a in C.ARGUMENTS if a.targets}
     values["record"] = bool(args.record)
@@ -162,7 +162,7 @@ def main(argv=None) -> int:
         print(f"error: {runtime.one_line(exc)}", file=sys.stderr)
         return runtime.EXIT_CONFIG_ERROR
     args = build_parser(defaults).parse_args(rclpy.utilities.remove_ros_args(["x"] + argv)[1:])
-    values = argument_values(args, defaults)
+    values = argument_values(args)
     try:
         runtime.init([PROG] + argv)
     except ConfigError as exc:
