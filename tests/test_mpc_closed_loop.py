@@ -120,3 +120,15 @@ def test_solve_batch_matches_independent_solves_and_keeps_per_slot_warm_starts()
     # a different batch size starts fresh slots instead of mixing them up
     b3 = batch.solve_batch(X0[:2], Xr[:2], Up[:2])
     assert np.allclose(b3.U, b1.U[:2], atol=1e-9)
+
+
+def test_kernel_wraps_angles_by_the_shared_rule():
+    """The kernels compile bimacppo_common.conventions.wrap_angle itself: same value for every
+    angle, bit for bit, including the branch points +-pi and huge angles."""
+    from bimacppo_common.conventions import wrap_angle
+
+    rng = np.random.default_rng(0)
+    angles = np.concatenate([rng.uniform(-50.0, 50.0, 2000), [0.0, math.pi, -math.pi, 3 * math.pi, -3 * math.pi,
+                                                               1e9, -1e9, 1e-300, -1e-300]])
+    for a in angles:
+        assert K.wrap_angle(float(a)) == wrap_angle(float(a))

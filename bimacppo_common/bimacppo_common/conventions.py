@@ -6,8 +6,8 @@ outcomes and how an angle is wrapped. Defined here once; no ROS, no numpy.
 * ``wrap_angle`` maps any angle to (-pi, pi]: heading differences never jump by 2*pi, and
   -pi and pi are the same heading, written pi.
 
-``bimacppo_mpc._kernels`` keeps a numba-compiled twin of ``wrap_angle`` (same interval): a
-compiled kernel cannot call this one.
+``wrap_angle`` uses only ``math``, so ``bimacppo_mpc._kernels`` compiles this same function
+with numba rather than keeping a copy.
 """
 from __future__ import annotations
 
@@ -20,8 +20,9 @@ TWO_PI = 2.0 * math.pi
 
 
 def wrap_angle(a: float) -> float:
-    """Wrap to (-pi, pi]."""
-    a = math.fmod(a + math.pi, TWO_PI)
-    if a <= 0.0:
-        a += TWO_PI
-    return a - math.pi
+    """Wrap to (-pi, pi]. Written with ``math.floor`` only, so numba compiles this function too."""
+    r = a + math.pi
+    r -= TWO_PI * math.floor(r / TWO_PI)        # [0, 2*pi) up to rounding
+    if r <= 0.0:
+        r += TWO_PI
+    return r - math.pi

@@ -28,6 +28,7 @@ same per-slot routine.
 import math
 
 import numpy as np
+from bimacppo_common import conventions as _conventions
 from numba import njit, prange
 
 # status codes shared with controller.py (STATUS_TEXT there)
@@ -79,13 +80,8 @@ _GATE_KMIN_DEN = 4
 _STEER_ON_BOUND = 1e-9   # |delta - bound| below this counts as on the bound
 
 
-@njit(cache=True)
-def wrap_angle(a):
-    """Wrap to (-pi, pi]."""
-    w = a - 2.0 * math.pi * math.floor((a + math.pi) / (2.0 * math.pi))
-    if w <= -math.pi:
-        w = math.pi
-    return w
+# the project's one wrap rule (bimacppo_common.conventions), compiled for the kernels
+wrap_angle = njit(cache=True)(_conventions.wrap_angle)
 
 
 @njit(cache=True)
