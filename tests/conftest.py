@@ -1,14 +1,24 @@
 """Shared test setup.
 
-ROS graph tests must never see another run's nodes: every pytest session gets
-its own DDS domain (derived from the PID, unless ROS_DOMAIN_ID is already set)
-and discovery is confined to this machine.
+ROS graph tests must never see another run's nodes: every pytest session holds a DDS domain of
+its own for its whole life (``ros_domain.acquire``: a lock per id, so concurrent sessions on one
+machine never share one; never 0 nor the ROS_DOMAIN_ID the session was started with, which is
+the user's own graph), exported as ROS_DOMAIN_ID to everything the tests start, and discovery
+is confined to this machine. A test that needs a further domain of its own takes it from
+``ros_domain.acquire`` too.
 """
 import os
 import pathlib
 
-os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+import ros_domain
+
+if not ros_domain.held():   # once per process, also if this module is imported again by name
+    os.environ["ROS_DOMAIN_ID"] = str(ros_domain.acquire())
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+def pytest_report_header(config):
+    return f"ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} (held by this session), discovery LOCALHOST"

@@ -29,6 +29,7 @@ rclpy = pytest.importorskip("rclpy")
 pytestmark = pytest.mark.ros
 
 import faultlib as F  # noqa: E402
+import ros_domain  # noqa: E402
 from test_ros_bad_parameters import CASES as BAD_PARAMETERS  # noqa: E402
 from bimacppo_interfaces import contract as I  # noqa: E402
 from bimacppo_bag import mcap_io  # noqa: E402
@@ -394,7 +395,7 @@ def realtime(policy_file, tmp_path_factory):
     this group's start-up handshake fire too early when both shared a domain."""
     from rclpy.executors import SingleThreadedExecutor
     d = tmp_path_factory.mktemp("realtime")
-    domain = 20 + int(os.environ.get("ROS_DOMAIN_ID", "0")) % 80
+    domain = ros_domain.acquire()
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
     node = rclpy.create_node("fault_realtime", context=ctx)
@@ -579,7 +580,7 @@ def liveness(policy_file, tmp_path_factory):
     they answered within one episode."""
     from rclpy.executors import SingleThreadedExecutor
     d = tmp_path_factory.mktemp("liveness")
-    domain = 200 + int(os.environ.get("ROS_DOMAIN_ID", "0")) % 30
+    domain = ros_domain.acquire()
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
     node = rclpy.create_node("fault_liveness", context=ctx)
