@@ -91,12 +91,13 @@ def _decoder(channel):
     return cls.FromString
 
 
-def _collect(client, subs, want, timeout, tick=None):
-    """Decoded messages per topic until every topic of ``want`` has one; ``tick()`` runs between frames."""
+def _collect(client, subs, want, timeout, tick=None, enough=None):
+    """Decoded messages per topic until every topic of ``want`` has one (and ``enough(got)``, if
+    given, holds); ``tick()`` runs between frames."""
     decoders = {i: _decoder(c) for i, c in subs.items()}
     got = {}
     t_end = time.monotonic() + timeout
-    while not want <= set(got):
+    while not (want <= set(got) and (enough is None or enough(got))):
         if time.monotonic() > t_end:
             pytest.fail(f"no message on {sorted(want - set(got))} within {timeout} s (got {sorted(got)})")
         if tick is not None:
@@ -127,6 +128,8 @@ def test_live_view_serves_the_graph_topics(node):
         "goal": node.create_publisher(I.PoseStamped, I.TOPIC_GOAL, I.LATCHED_QOS),
         "reference": node.create_publisher(I.Odometry, I.TOPIC_REFERENCE, I.STATE_QOS),
         "command": node.create_publisher(I.JointTrajectory, I.TOPIC_COMMAND, I.STATE_QOS),
+        "result": node.create_publisher(I.DiagnosticStatus, I.TOPIC_RESULT, I.RESULT_QOS),
+        "planner_result": node.create_publisher(I.DiagnosticStatus, I.TOPIC_PLANNER_RESULT, I.RESULT_QOS),
     }
     pubs["goal"].publish(I.goal_to_pose([-60.0, 1.75, 3.1], 100_000_000))   # latched: sent before the view starts
     proc = _start("-m", "bimacppo_viz.ros.live_view", "--ros-args", "-p", f"port:={port}")
@@ -150,10 +153,16 @@ def test_live_view_serves_the_graph_topics(node):
             pubs["reference"].publish(I.reference_to_odometry([0.0, -30.0 + k[0], 6.0, 1.57], stamp))
             pubs["command"].publish(I.command_to_trajectory([0.5, -0.02], stamp, horizon=[[0.5, -0.02], [0.4, 0.0]],
                                                             dt=0.1))
+            if k[0] % 5 == 0:   # an episode ends: the world's result, then the planner's with the return
+                res = I.EpisodeResult("timeout", None, 1, "left", 3, k[0], stamp)
+                pubs["result"].publish(I.result_to_status(res))
+                pubs["planner_result"].publish(I.result_to_status(
+                    I.EpisodeResult(res.outcome, -0.5 * k[0], res.n_sv, res.task, res.seed, res.steps, stamp)))
             rclpy.spin_once(node, timeout_sec=0.0)
 
-        want = {S.CH_ROAD, S.CH_VEHICLES, S.CH_GOAL, S.CH_REFERENCE, S.CH_TF, S.CH_EGO, S.CH_COMMAND}
-        got = _collect(client, subs, want, PROC_TIMEOUT, tick)
+        want = {S.CH_ROAD, S.CH_VEHICLES, S.CH_GOAL, S.CH_REFERENCE, S.CH_TF, S.CH_EGO, S.CH_COMMAND, S.CH_EPISODE}
+        sources = lambda got: {m["source"] for m in got.get(S.CH_EPISODE, [])} == set(S.EPISODE_SOURCES)  # noqa: E731
+        got = _collect(client, subs, want, PROC_TIMEOUT, tick, enough=sources)
         client.close()
     finally:
         rc, out = _stop(proc)
@@ -175,6 +184,14 @@ def test_live_view_serves_the_graph_topics(node):
     assert ego["v"] == pytest.approx(5.0) and ego["y"] == pytest.approx(-40.0 + round(ego["t"] * 10))
     cmd = got[S.CH_COMMAND][0]
     assert (cmd["a"], cmd["delta"]) == pytest.approx((0.5, -0.02)) and cmd["horizon_a"] == pytest.approx([0.5, 0.4])
+    for m in got[S.CH_EPISODE]:   # the planner's results carry the return it sent (-0.5 per step), the world's none
+        assert m["outcome"] == "timeout" and m["values"]["task"] == "left"
+        steps = int(m["values"]["steps"])
+        assert m["t"] == pytest.approx(steps / 10)
+        if m["source"] == S.SOURCE_PLANNER:
+            assert m["return"] == pytest.approx(-0.5 * steps)
+        else:
+            assert "return" not in m
 
 
 def test_road_lanes_are_placed_by_the_map_pose(tmp_path):

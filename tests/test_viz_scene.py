@@ -119,10 +119,26 @@ def test_json_messages_for_the_plots():
         S.command_json([float("nan"), 0.0], [[0.0, 0.0]], 0)
     e = S.episode_json({"outcome": "collision", "collided_with": "sv2"}, 3_000_000_000)
     assert e["outcome"] == "collision" and e["values"]["collided_with"] == "sv2" and e["t"] == 3.0
+    assert e["source"] == S.SOURCE_WORLD and "return" not in e    # the world's result has no return
+    r = S.episode_json({"outcome": "success", "return": "12.5"}, 3_000_000_000, S.SOURCE_PLANNER, 12.5)
+    assert r["source"] == S.SOURCE_PLANNER and r["return"] == 12.5 and r["values"]["return"] == "12.5"
     for name, schema in S.JSON_SCHEMAS.items():   # every JSON message fits its advertised schema's fields
-        msg = {S.CH_EGO: S.state_json([0, 0, 0, 0], 0), S.CH_REFERENCE_STATE: S.state_json([0, 0, 0, 0], 0),
-               S.CH_COMMAND: c, S.CH_EPISODE: e}[name]
-        assert set(msg) == set(schema["properties"]), name
+        msgs = {S.CH_EGO: [S.state_json([0, 0, 0, 0], 0)], S.CH_REFERENCE_STATE: [S.state_json([0, 0, 0, 0], 0)],
+                S.CH_COMMAND: [c], S.CH_EPISODE: [e, r]}[name]
+        for msg in msgs:
+            assert set(schema.get("required", schema["properties"])) <= set(msg) <= set(schema["properties"]), name
+    assert set(r) == set(S.JSON_SCHEMAS[S.CH_EPISODE]["properties"])
+    assert S.JSON_SCHEMAS[S.CH_EPISODE]["properties"]["source"]["enum"] == list(S.EPISODE_SOURCES)
+
+
+def test_episode_return_is_a_finite_number_from_a_known_source():
+    assert S.episode_json({}, 0, S.SOURCE_PLANNER, -3)["return"] == -3.0
+    assert isinstance(S.episode_json({}, 0, S.SOURCE_PLANNER, -3)["return"], float)
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="return is not finite"):
+            S.episode_json({"outcome": "success"}, 0, S.SOURCE_PLANNER, bad)
+    with pytest.raises(ValueError, match="source must be one of"):
+        S.episode_json({"outcome": "success"}, 0, "curriculum", 1.0)
 
 
 def _read_mcap(path):
@@ -159,6 +175,7 @@ def test_live_scene_pairs_ev_and_svs_by_stamp(tmp_path):
     sc.on_route([[0.0, -40.0], [0.0, 0.0]], 100)
     sc.on_command([1.0, 0.0], [[1.0, 0.0], [0.5, 0.01]], 100)
     sc.on_result({"outcome": "success", "stamp_ns": "300"}, 300)
+    sc.on_result({"outcome": "success", "stamp_ns": "300", "return": "-4.25"}, 300, S.SOURCE_PLANNER, -4.25)
     sc.on_road([("in", [[0.0, -60.0], [0.0, -15.0]]), ("conn", [[0.0, -15.0], [-15.0, 0.0]])])
     sc.resend_latched()                                 # map and goal again, for a later client
     writer.close()
@@ -171,7 +188,9 @@ def test_live_scene_pairs_ev_and_svs_by_stamp(tmp_path):
     frames = [t.transforms[0].child_frame_id for t in got[S.CH_TF]]
     assert frames.count("base_link") == 3 and frames.count("x_imr") == 1
     assert got[S.CH_COMMAND][0]["horizon_a"] == [1.0, 0.5]
-    assert got[S.CH_EPISODE][0]["outcome"] == "success"
+    assert [(m["source"], m["outcome"], m.get("return")) for m in got[S.CH_EPISODE]] == [
+        (S.SOURCE_WORLD, "success", None), (S.SOURCE_PLANNER, "success", -4.25)]
+    assert got[S.CH_EPISODE][1]["t"] == pytest.approx(3e-7)
     assert len(got[S.CH_ROUTE]) == len(got[S.CH_REFERENCE]) == 1
     assert len(got[S.CH_GOAL]) == 2 and got[S.CH_GOAL][0] == got[S.CH_GOAL][1]
     assert sc.logged[S.CH_VEHICLES] == 3
@@ -187,7 +206,8 @@ def test_shipped_layout_opens_the_scene_channels_and_plots():
     assert set(three_d[0]["topics"]) == set(S.SCENE_CHANNELS)
     assert all(t["visible"] for t in three_d[0]["topics"].values())
     plotted = {p["value"] for k, v in panels.items() if k.startswith("Plot!") for p in v["paths"]}
-    assert plotted == {f"{S.CH_EGO}.v", f"{S.CH_REFERENCE_STATE}.v", f"{S.CH_COMMAND}.a", f"{S.CH_COMMAND}.delta"}
+    assert plotted == {f"{S.CH_EGO}.v", f"{S.CH_REFERENCE_STATE}.v", f"{S.CH_COMMAND}.a", f"{S.CH_COMMAND}.delta",
+                       f"{S.CH_EPISODE}.return"}
     for path in plotted:    # each plotted field is a property of its channel's JSON schema
         channel, fld = path.rsplit(".", 1)
         assert fld in S.JSON_SCHEMAS[channel]["properties"]
@@ -197,3 +217,28 @@ def test_shipped_layout_opens_the_scene_channels_and_plots():
             return [node]
         return leaves(node["first"]) + leaves(node["second"])
     assert sorted(leaves(layout["layout"])) == sorted(panels)   # every configured panel is placed
+
+
+def test_live_view_node_reads_results_through_the_contract():
+    """The node's result callbacks (called without DDS): the planner's result gives the scene its
+    return as the contract decodes it; one without a return is rejected; the world's has none."""
+    import types
+    pytest.importorskip("rclpy")
+    I = pytest.importorskip("bimacppo_interfaces.contract")
+    from bimacppo_viz.ros.live_view import TOPIC_PARAMETERS, LiveViewNode
+    assert TOPIC_PARAMETERS["planner_result_topic"] == I.TOPIC_PLANNER_RESULT
+    assert TOPIC_PARAMETERS["result_topic"] == I.TOPIC_RESULT
+    calls = []
+    fake = types.SimpleNamespace(scene=types.SimpleNamespace(on_result=lambda *a: calls.append(a)))
+    ret = -7.125
+    planner = I.result_to_status(I.EpisodeResult("collision", ret, 2, "left", 4, 80, 8_000_000_000))
+    world = I.result_to_status(I.EpisodeResult("collision", None, 2, "left", 4, 80, 8_000_000_000))
+    LiveViewNode._planner_result(fake, planner)
+    LiveViewNode._result(fake, world)
+    (pv, ps, psrc, pret), (wv, ws, wsrc) = calls
+    assert (ps, psrc, pret) == (8_000_000_000, S.SOURCE_PLANNER, ret) and pv["return"] == repr(ret)
+    assert (ws, wsrc) == (8_000_000_000, S.SOURCE_WORLD) and "return" not in wv
+    assert S.episode_json(pv, ps, psrc, pret)["return"] == ret
+    with pytest.raises(I.MessageError, match="no return"):
+        LiveViewNode._planner_result(fake, world)
+    assert len(calls) == 2

@@ -13,8 +13,9 @@ Channels (the names the shipped layout opens):
 * ``/viz/tf``, ``foxglove.FrameTransforms``: ``map -> base_link`` (EV) and ``map -> x_imr``,
   so the 3D panel can follow the EV;
 * plots, JSON: ``/viz/ego`` and ``/viz/reference_state`` (``t, x, y, v, psi``),
-  ``/viz/command`` (``t, a, delta`` and the MPC horizon), ``/viz/episode`` (the result's
-  key-values).
+  ``/viz/command`` (``t, a, delta`` and the MPC horizon), ``/viz/episode`` (one message per
+  episode result: the world's as soon as the episode ends, then the planner's with the
+  episode's ``return``, which only the agent can compute).
 
 Entities and transforms carry the sim stamp of the state they show, so a transform lookup at
 an entity's time finds the transform of the same tick. Display sizes and colours come from a
@@ -49,6 +50,12 @@ SCENE_CHANNELS = (CH_ROAD, CH_VEHICLES, CH_ROUTE, CH_REFERENCE, CH_GOAL)
 JSON_CHANNELS = (CH_EGO, CH_REFERENCE_STATE, CH_COMMAND, CH_EPISODE)
 CHANNELS = (*SCENE_CHANNELS, CH_TF, *JSON_CHANNELS)
 
+# who sent an episode result: the world (/episode/result, no return) or the planner
+# (/planner/episode_result, the world's facts plus the agent's return)
+SOURCE_WORLD = "world"
+SOURCE_PLANNER = "planner"
+EPISODE_SOURCES = (SOURCE_WORLD, SOURCE_PLANNER)
+
 ENTITY_ROAD = "road"
 ENTITY_EGO = "ego"
 ENTITY_SV_PREFIX = "sv/"
@@ -81,8 +88,11 @@ JSON_SCHEMAS = {
     CH_EPISODE: {
         "title": "bimacppo.EpisodeResult",
         "type": "object",
-        "properties": {"t": {"type": "number"}, "outcome": {"type": "string"},
+        "properties": {"t": {"type": "number"}, "source": {"type": "string", "enum": list(EPISODE_SOURCES)},
+                       "outcome": {"type": "string"},
+                       "return": {"type": "number"},   # only in the planner's results
                        "values": {"type": "object", "additionalProperties": {"type": "string"}}},
+        "required": ["t", "source", "outcome", "values"],
     },
 }
 
@@ -230,9 +240,20 @@ def command_json(u, horizon, stamp_ns: int) -> dict:
             "horizon_a": [float(r[0]) for r in h], "horizon_delta": [float(r[1]) for r in h]}
 
 
-def episode_json(values: Mapping[str, str], stamp_ns: int) -> dict:
-    return {"t": _seconds(stamp_ns), "outcome": str(values.get("outcome", "")),
-            "values": {str(k): str(v) for k, v in values.items()}}
+def episode_json(values: Mapping[str, str], stamp_ns: int, source: str = SOURCE_WORLD,
+                 episode_return: Optional[float] = None) -> dict:
+    """An episode result's key-values; ``return`` (a number, for plots) only when the source
+    gives one: a world's result carries none, so a missing return is never shown as 0."""
+    if source not in EPISODE_SOURCES:
+        raise ValueError(f"episode result: source must be one of {EPISODE_SOURCES}, got {source!r}")
+    out = {"t": _seconds(stamp_ns), "source": source, "outcome": str(values.get("outcome", "")),
+           "values": {str(k): str(v) for k, v in values.items()}}
+    if episode_return is not None:
+        ret = float(episode_return)
+        if not math.isfinite(ret):
+            raise ValueError(f"episode result: return is not finite ({episode_return!r})")
+        out["return"] = ret
+    return out
 
 
 # ----------------------------------------------------------------------------- the live scene
@@ -319,5 +340,6 @@ class LiveScene:
     def on_command(self, u, horizon, stamp_ns: int) -> None:
         self._log(CH_COMMAND, command_json(u, horizon, stamp_ns))
 
-    def on_result(self, values: Mapping[str, str], stamp_ns: int) -> None:
-        self._log(CH_EPISODE, episode_json(values, stamp_ns))
+    def on_result(self, values: Mapping[str, str], stamp_ns: int, source: str = SOURCE_WORLD,
+                  episode_return: Optional[float] = None) -> None:
+        self._log(CH_EPISODE, episode_json(values, stamp_ns, source, episode_return))

@@ -1,4 +1,5 @@
-"""live_view: the running graph on a Foxglove WebSocket server (EV, SVs, route, x_IMR, goal, commands).
+"""live_view: the running graph on a Foxglove WebSocket server (EV, SVs, route, x_IMR, goal, commands,
+episode results with the planner's return).
 
     ros2 run bimacppo_viz live_view [--ros-args -p port:=8765 -p host:=127.0.0.1 -p map_id:=dual_lane_4way]
     bimacppo-graph --live-view            # the same node inside the one-process graph
@@ -25,7 +26,7 @@ from bimacppo_ros_common.runtime import guarded, one_line, run_single
 from bimacppo_sim.config import WorldConfig
 from bimacppo_sim.road import available_maps, load_map
 
-from ..scene import CHANNELS, LiveScene
+from ..scene import CHANNELS, SOURCE_PLANNER, SOURCE_WORLD, LiveScene
 
 NODE_NAME = "live_view"
 DEFAULT_HOST = "127.0.0.1"
@@ -42,6 +43,7 @@ TOPIC_PARAMETERS = {
     "command_topic": I.TOPIC_COMMAND,
     "markers_topic": I.TOPIC_MARKERS,
     "result_topic": I.TOPIC_RESULT,
+    "planner_result_topic": I.TOPIC_PLANNER_RESULT,
 }
 
 
@@ -108,6 +110,7 @@ class LiveViewNode(Node):
         # serves subscriptions in creation order (docs/interfaces.md, episode boundaries)
         sub("goal_topic", I.PoseStamped, I.LATCHED_QOS, self._goal)
         sub("result_topic", I.DiagnosticStatus, I.RESULT_QOS, self._result)
+        sub("planner_result_topic", I.DiagnosticStatus, I.RESULT_QOS, self._planner_result)
         sub("ego_topic", I.Odometry, I.STATE_QOS, self._ego)
         sub("objects_topic", I.MultiDOFJointTrajectory, I.STATE_QOS, self._objects)
         sub("reference_topic", I.Odometry, I.STATE_QOS, self._reference)
@@ -144,7 +147,16 @@ class LiveViewNode(Node):
             stamp = int(values.get("stamp_ns", "0"))
         except ValueError:
             raise I.MessageError(f"episode result: stamp_ns is not an integer ({values.get('stamp_ns')!r})") from None
-        self.scene.on_result(values, max(stamp, 0))
+        self.scene.on_result(values, max(stamp, 0), SOURCE_WORLD)
+
+    def _planner_result(self, msg) -> None:
+        """The planner's result is the one that carries the return: it is read with the
+        contract's converter (return finite, facts well-formed), and one without a return is
+        rejected rather than shown as a result without one."""
+        res = I.status_to_result(msg)
+        if res.episode_return is None:
+            raise I.MessageError("planner episode result: no return")
+        self.scene.on_result(I.result_extras(msg), res.stamp_ns, SOURCE_PLANNER, res.episode_return)
 
     def close(self) -> None:
         server = getattr(self, "server", None)
