@@ -493,12 +493,34 @@ def test_the_checker_catches_misspellings(checker):
 @pytest.mark.parametrize("module, usage", [("bimacppo_bag.recorder", "usage: mcap_recorder"),
                                            ("bimacppo_bag.player", "usage: mcap_player")])
 def test_bag_tools_take_an_option_for_no_file_name(module, usage, tmp_path):
-    """``mcap_recorder --help`` must not record to a file named ``--help``: an option before
-    ``--ros-args`` is a one-line usage error (exit 2), and nothing is written."""
+    """An option before ``--ros-args`` is no file name: ``mcap_recorder --verbose`` is a
+    one-line usage error (exit 2) and writes nothing, ``--help`` prints the usage (exit 0) and
+    writes nothing either (a file named ``--help`` would be the bug)."""
+    import subprocess
+    env = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get("AMENT_PREFIX_PATH", sys.prefix))
+    r = subprocess.run([sys.executable, "-m", module, "--verbose"], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=60)
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert r.returncode == 2 and len(errors) == 1 and usage in errors[0], r.stdout + r.stderr
+    assert "Traceback" not in r.stderr and list(tmp_path.iterdir()) == []
+    r = subprocess.run([sys.executable, "-m", module, "--help"], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.startswith("usage: ") and "--ros-args" in r.stdout, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("module", ["bimacppo_sim.ros.world_node", "bimacppo_planner.ros.planner_node",
+                                    "bimacppo_mpc.ros.controller_node", "bimacppo_curriculum.ros.curriculum_node",
+                                    "bimacppo_viz.ros.live_view"])
+def test_nodes_print_their_usage_for_help_and_do_not_start(module, tmp_path):
+    """``world_node --help`` prints how ROS arguments are passed and the module's docstring, and
+    exits 0 at once instead of starting the node."""
     import subprocess
     env = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get("AMENT_PREFIX_PATH", sys.prefix))
     r = subprocess.run([sys.executable, "-m", module, "--help"], cwd=tmp_path, env=env, capture_output=True,
                        text=True, timeout=60)
-    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
-    assert r.returncode == 2 and len(errors) == 1 and usage in errors[0], r.stdout + r.stderr
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert r.stdout.startswith("usage: ") and "--ros-args" in r.stdout and "docs/ros.md" in r.stdout
+    doc = importlib.import_module(module).__doc__.strip().splitlines()[0]
+    assert doc in r.stdout
     assert "Traceback" not in r.stderr and list(tmp_path.iterdir()) == []

@@ -327,7 +327,7 @@ class McapPlayer(Node):
 
 def main(argv=None) -> int:
     def make(args):
-        if len(args) > 1 or any(a.startswith("-") for a in args):   # an option is no file name (--help)
+        if len(args) > 1 or any(a.startswith("-") for a in args):   # an option is no file name
             raise ValueError(f"usage: mcap_player [FILE.mcap | ROSBAG2_DIR] [--ros-args ...] (got {args})")
         return McapPlayer(path=args[0] if args else None)
     return run_single(make, argv)

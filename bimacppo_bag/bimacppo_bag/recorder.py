@@ -264,7 +264,7 @@ class McapRecorder(Node):
 
 def main(argv=None) -> int:
     def make(args):
-        if len(args) > 1 or any(a.startswith("-") for a in args):   # an option is no file name (--help)
+        if len(args) > 1 or any(a.startswith("-") for a in args):   # an option is no file name
             raise ValueError(f"usage: mcap_recorder [OUTPUT.mcap] [--ros-args ...] (got {args})")
         return McapRecorder(output=args[0] if args else None)
     return run_single(make, argv)

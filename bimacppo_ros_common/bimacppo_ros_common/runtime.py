@@ -157,6 +157,19 @@ def close_nodes(nodes: List) -> None:
             pass
 
 
+def node_usage(make_node: Callable) -> str:
+    """``--help`` of a node executable: how ROS arguments are passed, then the docstring of the
+    module that defines the node (what it does, its topics and parameters)."""
+    import inspect
+    prog = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else "node"
+    module = inspect.getmodule(make_node)
+    doc = inspect.cleandoc(module.__doc__) if module is not None and module.__doc__ else ""
+    head = (f"usage: {prog} [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r FROM:=TO ...]]\n"
+            "Parameters are ROS parameters (declared with ranges; `ros2 param describe` lists them);\n"
+            "docs/ros.md has every node's parameter table.")
+    return head + ("\n\n" + doc if doc else "")
+
+
 def run_single(make_node: Callable[[List[str]], object], argv=None,
                done_attr: str = "done") -> int:
     """``main`` body for one node per process (what ``ros2 run`` starts)."""
@@ -167,6 +180,9 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
         return EXIT_CONFIG_ERROR
     node = None
     try:
+        if "-h" in args or "--help" in args:
+            print(node_usage(make_node))
+            return 0
         try:
             node = make_node(args)
         except (ValueError, FileNotFoundError, LookupError, *SetupException) as exc:
