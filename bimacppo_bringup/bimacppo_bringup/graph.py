@@ -150,6 +150,7 @@ def run(args, values) -> int:
     finally:
         paths = [n.path for n in nodes if hasattr(n, "path") and hasattr(n, "counts")]
         runtime.close_nodes(nodes)
+        runtime.close_executor(ex)
         for path in paths:
             print(f"mcap: {path}")
 

@@ -157,6 +157,17 @@ def close_nodes(nodes: List) -> None:
             pass
 
 
+def close_executor(ex) -> None:
+    """Shut an executor down while its context is still alive. Left to the garbage collector
+    after ``rclpy.shutdown``, its destructor touches the context's SIGINT guard condition, which
+    is already destroyed, and prints an ignored-exception traceback at exit."""
+    if ex is not None:
+        try:
+            ex.shutdown(timeout_sec=1.0)
+        except Exception:
+            pass
+
+
 def node_usage(make_node: Callable) -> str:
     """``--help`` of a node executable: how ROS arguments are passed, then the docstring of the
     module that defines the node (what it does, its topics and parameters)."""
@@ -179,6 +190,7 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
         print(f"error: {one_line(exc)}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
     node = None
+    ex = None
     try:
         if "-h" in args or "--help" in args:
             print(node_usage(make_node))
@@ -197,4 +209,5 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
     finally:
         if node is not None:
             close_nodes([node])
+        close_executor(ex)
         rclpy.try_shutdown()
