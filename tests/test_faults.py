@@ -647,11 +647,10 @@ def test_bogus_result_one_tick_ahead_is_followed_by_a_resync(liveness):
     g, w = liveness, liveness["watcher"]
     assert g["up"]
     warn = f"re-sent {RESEND_WARN} times without a command"
-    for attempt in range(3):
+    for attempt in range(5):
         assert w.progress(ticks=3, timeout=30)
         before = {k: _lines(g, k, RESYNC_LINE) for k in ("planner", "controller")}
         warned0 = _warned_ticks(g, warn)
-        goal0 = I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp)
         newest = max(w.states)
         w.publish(g["pubs"][I.TOPIC_RESULT], _foreign_result(newest + TICK))
         t0 = time.monotonic()
@@ -659,11 +658,11 @@ def test_bogus_result_one_tick_ahead_is_followed_by_a_resync(liveness):
         delay = time.monotonic() - t0
         w.spin(1.0)
         resyncs = {k: _lines(g, k, RESYNC_LINE) - before[k] for k in before}
-        # the episode may have ended by itself at the newest tick: the next one starts one tick
-        # later, so the injected result carries the new goal's stamp (refused: an episode lasts
-        # a step) and nothing stalls. Then inject again.
-        overtaken = I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp) != goal0 and not any(resyncs.values())
-        if not overtaken:
+        # the injection can miss: the episode may have ended by itself at the newest tick (the
+        # result then carries the new goal's stamp, refused: an episode lasts a step), or on a
+        # loaded machine both nodes answered the next tick before the result arrived (refused as
+        # older than what they answered). Then nothing stalls and nobody resyncs: inject again.
+        if not (moving and not any(resyncs.values())):
             break
     # one warning per stalled tick: two when the result reached one node only after it had
     # answered the tick (then the other node stalls on it, the first on the next tick)
