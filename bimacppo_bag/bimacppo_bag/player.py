@@ -59,7 +59,7 @@ from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from bimacppo_interfaces import contract as I
-from bimacppo_ros_common.runtime import SetupException, run_single
+from bimacppo_ros_common.runtime import SetupException, optional_path_arg, run_single
 
 from . import mcap_io
 from .recorder import import_message_type, string_list
@@ -327,9 +327,7 @@ class McapPlayer(Node):
 
 def main(argv=None) -> int:
     def make(args):
-        if len(args) > 1 or any(a.startswith("-") for a in args):   # an option is no file name
-            raise ValueError(f"usage: mcap_player [FILE.mcap | ROSBAG2_DIR] [--ros-args ...] (got {args})")
-        return McapPlayer(path=args[0] if args else None)
+        return McapPlayer(path=optional_path_arg(args, "mcap_player [FILE.mcap | ROSBAG2_DIR] [--ros-args ...]"))
     return run_single(make, argv)
 
 

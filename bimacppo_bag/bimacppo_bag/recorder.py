@@ -40,7 +40,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from bimacppo_interfaces import contract as I
 from bimacppo_ros_common.params import param_range
-from bimacppo_ros_common.runtime import run_single
+from bimacppo_ros_common.runtime import optional_path_arg, run_single
 
 from . import mcap_io
 
@@ -264,9 +264,7 @@ class McapRecorder(Node):
 
 def main(argv=None) -> int:
     def make(args):
-        if len(args) > 1 or any(a.startswith("-") for a in args):   # an option is no file name
-            raise ValueError(f"usage: mcap_recorder [OUTPUT.mcap] [--ros-args ...] (got {args})")
-        return McapRecorder(output=args[0] if args else None)
+        return McapRecorder(output=optional_path_arg(args, "mcap_recorder [OUTPUT.mcap] [--ros-args ...]"))
     return run_single(make, argv)
 
 

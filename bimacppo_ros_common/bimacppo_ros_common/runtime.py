@@ -157,6 +157,15 @@ def close_nodes(nodes: List) -> None:
             pass
 
 
+def optional_path_arg(args: List[str], usage: str) -> Optional[str]:
+    """The one optional positional path of a bag tool (``mcap_recorder [OUTPUT.mcap]``): None
+    without one; a second one, or an option before ``--ros-args`` (``--verbose``), is no path:
+    ``ValueError`` with the usage line (run_single turns it into one ``error:`` line, exit 2)."""
+    if len(args) > 1 or any(a.startswith("-") for a in args):
+        raise ValueError(f"usage: {usage} (got {args})")
+    return args[0] if args else None
+
+
 def close_executor(ex) -> None:
     """Shut an executor down while its context is still alive. Left to the garbage collector
     after ``rclpy.shutdown``, its destructor touches the context's SIGINT guard condition, which
