@@ -23,8 +23,10 @@ from rclpy.serialization import deserialize_message, serialize_message
 from bimacppo_interfaces import contract as I
 from rosgraph_msgs.msg import Clock as ClockMsg
 
+# PYTHONFAULTHANDLER: a node that hangs is sent SIGABRT (communicate_or_dump) and prints every
+# thread's stack, so a hang found under load says where it was.
 ENV = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get("AMENT_PREFIX_PATH", sys.prefix),
-           PYTHONUNBUFFERED="1")
+           PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1")
 
 OUTPUTS = {   # every output topic of every node
     I.TOPIC_CLOCK: ClockMsg, I.TOPIC_EGO_ODOM: I.Odometry, I.TOPIC_OBJECTS: I.MultiDOFJointTrajectory,
@@ -147,6 +149,23 @@ def stop(procs, sig=signal.SIGINT, timeout=15.0) -> None:
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait()
+
+
+def communicate_or_dump(p, timeout: float):
+    """``p.communicate(timeout)``; a process still running then gets SIGABRT, which the fault
+    handler (ENV) answers by writing all threads' stacks to stderr before it dies, and that
+    stderr is returned with the rest. Returns (stdout, stderr, hung)."""
+    try:
+        out, err = p.communicate(timeout=timeout)
+        return out, err, False
+    except subprocess.TimeoutExpired:
+        p.send_signal(signal.SIGABRT)
+        try:
+            out, err = p.communicate(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            out, err = p.communicate()
+        return out, err, True
 
 
 def log_lines(path, needle: str) -> int:

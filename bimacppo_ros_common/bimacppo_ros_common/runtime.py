@@ -9,6 +9,7 @@ stderr with exit code 2, never as a traceback.
 """
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import sys
@@ -218,5 +219,9 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
     finally:
         if node is not None:
             close_nodes([node])
+        else:
+            # a node whose constructor raised is unreachable, but its rcl handles may sit in a
+            # reference cycle; collect it now, while its context is alive, not at interpreter exit
+            gc.collect()
         close_executor(ex)
         rclpy.try_shutdown()
