@@ -22,6 +22,8 @@ from bimacppo_common.conventions import TASKS
 from .geometry import MapFrame, Path, bezier_connector, point_segment_distances, polyline_crossings
 
 MAP_DIR = pathlib.Path(__file__).resolve().parent / "maps"
+DEFAULT_MAP = "dual_lane_4way"
+"""The map a tool draws or runs on when none is named."""
 ARMS = {"north": (0.0, 1.0), "south": (0.0, -1.0), "east": (1.0, 0.0), "west": (-1.0, 0.0)}
 
 
@@ -509,14 +511,20 @@ class RoadMap:
         return total
 
 
+def map_from_yaml(text: str, where: str) -> RoadMap:
+    """A map from the text of a map file (``where`` names it in errors): how a map that travels
+    with a recording is read back where its file does not exist."""
+    try:
+        spec = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"map {where}: not valid YAML: {exc}") from None
+    return RoadMap(spec, where)
+
+
 @functools.lru_cache(maxsize=16)
 def _load_cached(path: str) -> RoadMap:
     with open(path) as fh:
-        try:
-            spec = yaml.safe_load(fh)
-        except yaml.YAMLError as exc:
-            raise ValueError(f"map {path}: not valid YAML: {exc}") from None
-    return RoadMap(spec, path)
+        return map_from_yaml(fh.read(), path)
 
 
 def load_map(id_or_path: str | pathlib.Path) -> RoadMap:
