@@ -15,7 +15,10 @@ received. Rules:
   ``stamp_ns``: time on the frame is counted from the goal, and the terminal frame shows the
   outcome; the task comes from that result;
 * a topic recorded with another type than the contract's, and a message the converters reject,
-  are skipped and counted in :class:`BagFrames` ``skipped`` (the caller warns), never guessed.
+  are skipped and counted in :class:`BagFrames` ``skipped`` (the caller warns), never guessed;
+* the map: what our recorder wrote in its ``bimacppo`` metadata record (``map_id``, and
+  ``map_yaml`` for a map file), else ``""``: a bag of another writer names no map, and which map
+  to draw it on is the caller's choice.
 """
 from __future__ import annotations
 
@@ -65,6 +68,8 @@ class BagFrames:
     messages: Dict[str, int] = field(default_factory=dict)   # every topic of the bag: messages read
     skipped: Dict[str, str] = field(default_factory=dict)    # topic -> why (some or all of it)
     damaged: str = ""                                        # the reader's report when it skipped data
+    map_id: str = ""                                         # the recorded world's map_id ("" = not recorded)
+    map_yaml: str = ""                                       # the text of that map file, if recorded
 
 
 def _same_type(a: str, b: str) -> bool:
@@ -92,6 +97,7 @@ def read_bag(path, progress: Optional[Callable[[int], None]] = None) -> BagFrame
     skipped: Dict[str, str] = {}
     counts: Dict[str, int] = {}
     problems = []
+    run: Dict[str, str] = {}   # the recorder's run metadata: the last file that has it
     for f in files:
         report = mcap_io.ReadReport()
         for schema, channel, msg in mcap_io.iter_mcap(f, report):
@@ -108,6 +114,7 @@ def read_bag(path, progress: Optional[Callable[[int], None]] = None) -> BagFrame
             raw[topic].append(msg.data)
         for t, n in report.topics.items():
             counts[t] = counts.get(t, 0) + n
+        run = dict(report.metadata.get(mcap_io.RUN_METADATA) or run)
         if not report.complete:
             if report.messages == 0:
                 raise BagRenderError(f"{f} is not a readable MCAP file ({report.error})")
@@ -170,4 +177,5 @@ def read_bag(path, progress: Optional[Callable[[int], None]] = None) -> BagFrame
                             goal=goal[1] if goal is not None else None, route=rt[1] if rt is not None else None,
                             time_s=(stamp - start) / I.NS_PER_S, task=res[0] if res else "",
                             outcome=res[1] if res is not None and res_st[i] == stamp else None))
-    return BagFrames(frames=frames, messages=counts, skipped=skipped, damaged="; ".join(problems))
+    return BagFrames(frames=frames, messages=counts, skipped=skipped, damaged="; ".join(problems),
+                     map_id=run.get(mcap_io.MAP_ID_KEY, ""), map_yaml=run.get(mcap_io.MAP_YAML_KEY, ""))

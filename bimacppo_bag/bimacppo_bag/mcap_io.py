@@ -27,6 +27,11 @@ MESSAGE_ENCODING = "cdr"
 PROFILE = "ros2"
 DELIMITER = "=" * 80 + "\n"
 
+RUN_METADATA = "bimacppo"
+"""Name of the metadata record in which the recorder states what the recorded graph ran on."""
+MAP_ID_KEY = "map_id"         # the world's map_id parameter: a map id or a YAML path
+MAP_YAML_KEY = "map_yaml"     # the text of that YAML file (only when map_id is a file)
+
 _FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
 _PRIMITIVES = frozenset({"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16",
                          "uint16", "int32", "uint32", "int64", "uint64", "string"})
@@ -185,6 +190,8 @@ class ReadReport:
 
     ``lost`` counts, per topic, the messages of damaged chunks that were skipped (known from
     the chunks' message indexes; a chunk without a readable index adds to ``lost_unknown``).
+    ``metadata``: the file's metadata records, name -> key/values (a later record of a name
+    updates an earlier one, the way rosbag2 takes its last ``rosbag2`` record).
     """
     messages: int = 0
     complete: bool = True
@@ -193,6 +200,7 @@ class ReadReport:
     chunks_skipped: int = 0
     lost: Dict[str, int] = field(default_factory=dict)
     lost_unknown: int = 0
+    metadata: Dict[str, Dict[str, str]] = field(default_factory=dict)
 
     def fail(self, reason: str) -> None:
         self.complete = False
@@ -201,6 +209,9 @@ class ReadReport:
     def count(self, topic: str) -> None:
         self.messages += 1
         self.topics[topic] = self.topics.get(topic, 0) + 1
+
+    def add_metadata(self, rec) -> None:
+        self.metadata.setdefault(rec.name, {}).update(rec.metadata)
 
 
 def _chunk_records(chunk) -> list:
@@ -240,6 +251,22 @@ def _lose(report: ReadReport, counts: Optional[Dict[str, int]], wanted) -> None:
     for topic, n in counts.items():
         if wanted is None or topic in wanted:
             report.lost[topic] = report.lost.get(topic, 0) + n
+
+
+def _read_indexed_metadata(f, summary, report: ReadReport) -> None:
+    """The metadata records a summary indexes, in file order; an unreadable one is reported."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Metadata
+
+    for mi in sorted(summary.metadata_indexes, key=lambda m: m.offset):
+        try:
+            f.seek(mi.offset)
+            buf = f.read(mi.length)
+            if len(buf) != mi.length:
+                raise EOFError(f"{len(buf)} of {mi.length} bytes")
+            report.add_metadata(Metadata.read(ReadDataStream(io.BytesIO(buf[9:]))))
+        except Exception as exc:
+            report.fail(f"metadata {mi.name!r} at byte {mi.offset} unreadable ({type(exc).__name__}: {exc})")
 
 
 def _iter_indexed(f, summary, report: ReadReport, wanted) -> Iterator[tuple]:
@@ -288,7 +315,7 @@ def _iter_linear(f, report: ReadReport, wanted) -> Iterator[tuple]:
     A chunk that fails its CRC (or does not decompress) is skipped and the scan goes on
     after it: its length field still tells where the next record starts.
     """
-    from mcap.records import Channel, Chunk, Message, MessageIndex, Schema
+    from mcap.records import Channel, Chunk, Message, MessageIndex, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
     schemas: Dict[int, object] = {}
@@ -312,6 +339,8 @@ def _iter_linear(f, report: ReadReport, wanted) -> Iterator[tuple]:
             channels[rec.id] = rec
         elif isinstance(rec, Message):
             return message(rec)
+        elif isinstance(rec, Metadata):
+            report.add_metadata(rec)
         return None
 
     try:
@@ -353,7 +382,8 @@ def iter_mcap(path, report: Optional[ReadReport] = None, topics=None) -> Iterato
     a valid footer (recorder killed) or without chunk indexes is scanned record by record
     in file order, up to the first unreadable byte. Chunk CRCs are checked: a damaged chunk
     is skipped (its messages counted in ``report.lost``) and reading goes on after it.
-    ``report`` (if given) says how far it got and what it skipped.
+    ``report`` (if given) says how far it got and what it skipped, and holds the file's
+    metadata records once the iteration is done.
     """
     from mcap.reader import SeekingReader
 
@@ -372,6 +402,7 @@ def iter_mcap(path, report: Optional[ReadReport] = None, topics=None) -> Iterato
         except Exception as exc:  # no footer / garbage at the end: fall back to scanning
             report.fail(f"no valid summary ({type(exc).__name__}: {exc})")
         if summary is not None and summary.chunk_indexes:
+            _read_indexed_metadata(f, summary, report)
             items = _iter_indexed(f, summary, report, wanted)
         else:
             f.seek(0, io.SEEK_SET)
