@@ -2,7 +2,9 @@
 
 The bags are written here with mcap_ros2's writer (not our recorder) from real World episodes,
 each message built by the converters of interfaces.py; bad inputs give one error line and exit
-2, and an existing output survives unless --overwrite.
+2, and an existing output survives unless --overwrite. Without --map a bag is drawn on the map
+its ``bimacppo`` metadata record names (what our recorder writes: tests/test_ros_mcap.py), a bag
+without one on dual_lane_4way.
 """
 from pathlib import Path
 
@@ -36,16 +38,19 @@ def _plain(msg):
 
 
 def _write_bag(path, with_topics=tuple(I.TOPIC_TYPES), chunk_size=1024 * 1024, odom_type=None, odom_frame=None,
-               map_id=MAP):
+               map_id=MAP, run_metadata=None):
     """Episodes of a World driven by the 'go' driver, published as the world node does (in the
-    fixed map frame: moved by the map file's pose, if any); returns (stamps of the states,
-    outcomes, EV states in the map's own frame)."""
+    fixed map frame: moved by the map file's pose, if any), with ``run_metadata`` as the
+    recorder's ``bimacppo`` metadata record if given; returns (stamps of the states, outcomes, EV
+    states in the map's own frame)."""
     w = World(load_map(map_id))
     fr = w.road.frame
     stamps, outcomes, egos = [], [], []
     k = [0]
     with open(path, "wb") as f:
         bag = Ros2Writer(f, chunk_size=chunk_size)
+        if run_metadata is not None:
+            bag.add_metadata(mcap_io.RUN_METADATA, run_metadata)
         schemas = {}
 
         def put(topic, msg, stamp):
@@ -306,6 +311,63 @@ def test_progress_bars_on_a_terminal_only(bag, tmp_path):
     assert piped.returncode == 0 and "rendering" not in piped.stderr, piped.stderr
 
 
+def _render(bag_path, out, *args):
+    """render-bag with few frames (the caller reads what it printed); returns the GIF's frames."""
+    assert main(["render-bag", str(bag_path), "-o", str(out), "--max-frames", "3", "--overwrite", *args]) == 0
+    return _gif(out)
+
+
+def _same(a, b):
+    return len(a) == len(b) and all(np.array_equal(x, y) for (x, _), (y, _) in zip(a, b))
+
+
+def test_without_map_the_bag_draws_the_map_it_records(bag, tmp_path, capsys):
+    """A bag that names its map (single_lane_4way) is drawn on that road without --map; one
+    without the record (another writer's) on dual_lane_4way, as before; --map always wins."""
+    named = tmp_path / "named.mcap"
+    _write_bag(named, run_metadata={mcap_io.MAP_ID_KEY: MAP})
+    out = tmp_path / "x.gif"
+    recorded = _render(named, out)
+    assert f"on map {MAP};" in capsys.readouterr().out
+    assert _same(recorded, _render(named, out, "--map", MAP))
+    default = _render(named, out, "--map", "dual_lane_4way")
+    assert not _same(recorded, default)                       # the roads differ: the flag is not a no-op
+    # the module's bag (mcap_ros2 writer, no record): dual_lane_4way, no warning
+    capsys.readouterr()
+    unnamed = _render(bag[0], out)
+    printed = capsys.readouterr()
+    assert "on map dual_lane_4way;" in printed.out and "warning" not in printed.err, printed
+    assert _same(unnamed, _render(bag[0], out, "--map", "dual_lane_4way"))
+
+
+def test_the_map_record_is_read_from_a_killed_recording_too(bag, tmp_path):
+    """No summary (a killed recorder): the record is found by the scan, as the messages are."""
+    from bimacppo_bag.bag_frames import read_bag
+    full, cut = tmp_path / "full.mcap", tmp_path / "cut.mcap"
+    _write_bag(full, chunk_size=16 * 1024, run_metadata={mcap_io.MAP_ID_KEY: MAP, mcap_io.MAP_YAML_KEY: "id: x"})
+    cut.write_bytes(full.read_bytes()[: full.stat().st_size * 2 // 3])
+    for path in (full, cut):
+        frames = read_bag(path)
+        assert (frames.map_id, frames.map_yaml) == (MAP, "id: x"), path
+    assert read_bag(cut).damaged and not read_bag(full).damaged
+    assert (read_bag(bag[0]).map_id, read_bag(bag[0]).map_yaml) == ("", "")
+
+
+@pytest.mark.parametrize("recorded", ["no_such_map", "gone/junction.yaml"])
+def test_a_recorded_map_not_loadable_here_is_one_warning(recorded, bag, tmp_path, capsys):
+    path = tmp_path / "elsewhere.mcap"
+    _write_bag(path, run_metadata={mcap_io.MAP_ID_KEY: recorded})
+    out = tmp_path / "x.gif"
+    frames = _render(path, out)
+    printed = capsys.readouterr()
+    warnings = [ln for ln in printed.err.splitlines() if "warning:" in ln]
+    assert len(warnings) == 1 and repr(recorded) in warnings[0] and "--map" in warnings[0], printed.err
+    assert "on map dual_lane_4way;" in printed.out and "Traceback" not in printed.err
+    assert _same(frames, _render(path, out, "--map", "dual_lane_4way"))
+    _render(path, out, "--map", MAP)                          # named explicitly: no warning
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_posed_map_renders_like_the_same_map_at_the_origin(tmp_path, capsys):
     """A map file's pose moves the recorded states (the world publishes in the fixed map frame);
     render-bag draws them in the map's own frame, on its road: the picture is the unposed one."""
@@ -318,7 +380,9 @@ def test_posed_map_renders_like_the_same_map_at_the_origin(tmp_path, capsys):
     posed.write_text(yaml.safe_dump(spec))
     a, b = tmp_path / "origin.mcap", tmp_path / "posed.mcap"
     _write_bag(a)
-    _write_bag(b, map_id=str(posed))
+    # as our recorder writes it: the map file's path and text
+    _write_bag(b, map_id=str(posed), run_metadata={mcap_io.MAP_ID_KEY: str(posed),
+                                                   mcap_io.MAP_YAML_KEY: posed.read_text()})
     ga, gb = tmp_path / "origin.gif", tmp_path / "posed.gif"
     assert main(["render-bag", str(a), "-o", str(ga), "--map", MAP, "--every", "10"]) == 0
     assert main(["render-bag", str(b), "-o", str(gb), "--map", str(posed), "--every", "10"]) == 0
@@ -332,3 +396,11 @@ def test_posed_map_renders_like_the_same_map_at_the_origin(tmp_path, capsys):
     assert main(["render-bag", str(b), "-o", str(gc), "--map", MAP, "--every", "10"]) == 0
     with pytest.raises(AssertionError, match="EV not drawn"):
         _ev_centre(_gif(gc)[0][0])
+    # without --map: the recorded text, also where the file no longer is
+    posed.rename(tmp_path / "moved.yaml")
+    capsys.readouterr()
+    gd = tmp_path / "recorded_map.gif"
+    assert main(["render-bag", str(b), "-o", str(gd), "--every", "10"]) == 0
+    printed = capsys.readouterr()
+    assert f"on map {posed};" in printed.out and "warning" not in printed.err, printed
+    assert _same(_gif(gd), fb)

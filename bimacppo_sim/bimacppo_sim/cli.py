@@ -14,7 +14,7 @@ from collections import Counter
 from bimacppo_common.conventions import TASKS
 
 from .drivers import DRIVERS, make_driver, run_episode
-from .road import available_maps, load_map
+from .road import DEFAULT_MAP, available_maps, load_map, map_from_yaml
 from .world import Scenario, World
 
 
@@ -85,6 +85,23 @@ def _in_map_frame(frame, f):
     return frame.states_to_map(f.ego), frame.states_to_map(f.svs), goal, route
 
 
+def recorded_map(bag, source: str):
+    """The road a recording names (our recorder's ``map_id``, read from the bag) and its name: the
+    recorded text of a map file first (what the world ran on, also where the file is absent or
+    changed since), else the id or path loaded here; a bag without a map, and one whose map cannot
+    be loaded here (one ``warning:`` line), are drawn on DEFAULT_MAP."""
+    if bag.map_id:
+        try:
+            if bag.map_yaml:
+                return map_from_yaml(bag.map_yaml, f"{bag.map_id} (as recorded in {source})"), bag.map_id
+            return load_map(bag.map_id), bag.map_id
+        except Exception as exc:  # noqa: BLE001 - any fault of a recorded map file: fall back, say why
+            why = (str(exc).splitlines() or [type(exc).__name__])[0]
+            print(f"warning: {source} was recorded on map {bag.map_id!r}, which cannot be loaded here ({why}); "
+                  f"drawing it on {DEFAULT_MAP} (name its map with --map)", file=sys.stderr)
+    return load_map(DEFAULT_MAP), DEFAULT_MAP
+
+
 def cmd_render_bag(a):
     from tqdm import tqdm
 
@@ -98,9 +115,12 @@ def cmd_render_bag(a):
         raise ValueError(f"--every and --max-frames must be >= 1, got {a.every} and {a.max_frames}")
     output = a.output or os.path.splitext(os.path.basename(os.path.normpath(a.bag)))[0] + ".gif"
     output = output_path(output, a.bag, a.overwrite)
-    road, cfg = load_map(a.map), WorldConfig.load()
+    cfg = WorldConfig.load()
+    road, map_name = (load_map(a.map), a.map) if a.map is not None else (None, "")   # a bad --map: before reading
     with tqdm(desc="reading", unit=" msg", disable=None, leave=False) as bar:
         bag = read_bag(a.bag, progress=bar.update)
+    if road is None:
+        road, map_name = recorded_map(bag, a.bag)
     for topic, why in sorted(bag.skipped.items()):
         print(f"warning: {topic}: skipped ({why})", file=sys.stderr)
     if bag.damaged:
@@ -134,7 +154,7 @@ def cmd_render_bag(a):
             os.unlink(tmp)
     outcomes = Counter(f.outcome for f in frames if f.outcome)
     ends = ", ".join(f"{k}: {v}" for k, v in sorted(outcomes.items())) or "no episode result"
-    print(f"{len(keep)} frames of {len(frames)} states ({ends}); wrote {output}")
+    print(f"{len(keep)} frames of {len(frames)} states ({ends}) on map {map_name}; wrote {output}")
 
 
 def reference_table(map_id, episodes, seed0, drivers=DRIVERS, progress=True):
@@ -173,7 +193,7 @@ def cmd_reference(a):
         print(f"wrote {a.out}")
 
 
-def bench(map_id="dual_lane_4way", n_sv=3, steps=20000, seed0=0):
+def bench(map_id=DEFAULT_MAP, n_sv=3, steps=20000, seed0=0):
     """World steps/s with n_sv SVs; the EV input is a constant (controller excluded)."""
     import numpy as np
     w = World(load_map(map_id))
@@ -219,7 +239,7 @@ def build_parser():
     sub = p.add_subparsers(dest="cmd", required=True)
 
     def common(sp):
-        sp.add_argument("--map", default="dual_lane_4way", help=f"map id {available_maps()} or a YAML path")
+        sp.add_argument("--map", default=DEFAULT_MAP, help=f"map id {available_maps()} or a YAML path")
         sp.add_argument("--n-sv", type=int, default=3, help="number of SVs (0..map max)")
         sp.add_argument("--task", default="left", choices=TASKS, help="EV task")
         sp.add_argument("--seed", type=int, default=0, help="scenario seed (>= 0)")
@@ -238,21 +258,21 @@ def build_parser():
     sp.add_argument("bag", help="MCAP file or rosbag2 directory (any ROS 2 writer)")
     sp.add_argument("-o", "--output", default="", help="GIF path (default: the bag's name with .gif, here)")
     sp.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    sp.add_argument("--map", default="dual_lane_4way", help=f"map the recording ran on {available_maps()} "
-                    "or a YAML path")
+    sp.add_argument("--map", default=None, help=f"map the recording ran on {available_maps()} or a YAML path "
+                    f"(default: the map our recorder stored in the bag, else {DEFAULT_MAP})")
     sp.add_argument("--view", type=float, default=60.0, help="half-width of the view (m)")
     sp.add_argument("--every", type=int, default=2, help="keep every k-th state (>= 1)")
     sp.add_argument("--max-frames", type=int, default=1000,
                     help="at most this many frames: a longer recording keeps fewer states")
     sp.set_defaults(func=cmd_render_bag)
     sp = sub.add_parser("reference", help="success/collision/timeout table of the scripted drivers")
-    sp.add_argument("--map", default="dual_lane_4way")
+    sp.add_argument("--map", default=DEFAULT_MAP)
     sp.add_argument("--episodes", type=int, default=100)
     sp.add_argument("--seed0", type=int, default=10000, help="first seed; cell uses seed0..seed0+episodes-1")
     sp.add_argument("--out", default=None, help="write the markdown table here")
     sp.set_defaults(func=cmd_reference)
     sp = sub.add_parser("bench", help="world steps/s and peak memory (controller excluded)")
-    sp.add_argument("--map", default="dual_lane_4way")
+    sp.add_argument("--map", default=DEFAULT_MAP)
     sp.add_argument("--n-sv", type=int, default=3)
     sp.add_argument("--steps", type=int, default=20000)
     sp.set_defaults(func=cmd_bench)
