@@ -2,7 +2,8 @@
 
 Checks: clean stop writes a complete, indexed file that an independent reader
 (mcap_ros2) decodes message by message; a ``kill -9`` leaves a readable file missing
-only its tail; the player republishes byte-identical messages and survives damaged files.
+only its tail; the player republishes byte-identical messages and survives damaged files;
+a recording of a world node names the world's map, and render-bag draws it there.
 """
 import os
 import signal
@@ -102,6 +103,8 @@ def test_recorder_clean_stop_writes_complete_indexed_file(node, tmp_path):
     odoms = [m for _, ch, m in mcap_io.iter_mcap(path, report) if ch.topic == I.TOPIC_EGO_ODOM]
     assert report.complete, report.error
     assert len(odoms) == 150
+    # no world answered: no map record, and nothing said about it
+    assert mcap_io.RUN_METADATA not in report.metadata and "the world runs on map" not in out, out
     # independent reader: summary present, ros2 profile, every message decodes to what was sent
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -220,6 +223,57 @@ def test_recorder_never_overwrites_an_existing_file_or_directory(tmp_path):
         assert rec.returncode == 2 and "Traceback" not in out, out
         assert f"is {what}: refusing to overwrite" in out, out
     assert crashed.read_bytes() == b"the crash's recording"
+
+
+@pytest.mark.parametrize("map_kind", ["id", "file"])
+def test_recording_of_a_world_names_its_map_and_renders_on_it(map_kind, tmp_path, capsys):
+    """The recorder asks the world's parameter service which map it runs on: a world on
+    single_lane_4way (not the default; by id, or a copy of its file) gives a bag whose
+    ``bimacppo`` record names it (a file with its text), and render-bag without --map draws the
+    recording on that road, a file's also once the file is gone."""
+    from bimacppo_sim.road import MAP_DIR
+    map_id, expected = "single_lane_4way", {mcap_io.MAP_ID_KEY: "single_lane_4way"}
+    if map_kind == "file":
+        text = (MAP_DIR / "single_lane_4way.yaml").read_text()
+        map_file = tmp_path / "junction.yaml"
+        map_file.write_text(text)
+        map_id, expected = str(map_file), {mcap_io.MAP_ID_KEY: str(map_file), mcap_io.MAP_YAML_KEY: text}
+    path, gif = tmp_path / "world.mcap", tmp_path / "world.gif"
+    rec = _start("bimacppo_bag.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
+                 "-p", "flush_period_s:=0.1")
+    world = _start("bimacppo_sim.ros.world_node", "--ros-args", "-p", f"map_id:={map_id}",
+                   "-p", "resend_period_s:=0.1")
+    t_end = time.monotonic() + PROC_TIMEOUT
+    while time.monotonic() < t_end:   # until the file holds the map record and a state
+        report = mcap_io.ReadReport()
+        states = sum(1 for _ in mcap_io.iter_mcap(path, report, topics=[I.TOPIC_EGO_ODOM]))
+        if states and mcap_io.RUN_METADATA in report.metadata:
+            break
+        time.sleep(0.2)
+    rc_world, out_world = _stop(world)
+    rc, out = _stop(rec, signal.SIGTERM)
+    assert rc == 0 and rc_world == 0 and "Traceback" not in out + out_world, out + out_world
+    assert f"the world runs on map {map_id}: recorded" in out, out
+    report = mcap_io.ReadReport()
+    assert any(True for _ in mcap_io.iter_mcap(path, report, topics=[I.TOPIC_EGO_ODOM]))
+    assert report.complete, report.error
+    assert report.metadata[mcap_io.RUN_METADATA] == expected
+
+    from bimacppo_sim.cli import main
+    from PIL import Image
+
+    def render(*args):
+        assert main(["render-bag", str(path), "-o", str(gif), "--max-frames", "2", "--overwrite", *args]) == 0
+        return np.asarray(Image.open(gif).convert("RGB"))
+    explicit = render("--map", map_id)
+    if map_kind == "file":
+        map_file.unlink()
+    capsys.readouterr()
+    recorded = render()
+    printed = capsys.readouterr()
+    assert f"on map {map_id};" in printed.out and "warning" not in printed.err, printed
+    assert np.array_equal(recorded, explicit)
+    assert not np.array_equal(recorded, render("--map", "dual_lane_4way"))
 
 
 def test_recorder_killed_leaves_readable_prefix(node, tmp_path):

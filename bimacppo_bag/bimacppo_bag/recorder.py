@@ -21,6 +21,29 @@ the body of metadata.yaml's ``rosbag2_bagfile_information``, version 9, storage
 ``mcap``, ``ros_distro: jazzy``). One is written at the start (so a killed recording
 still names its format) and a final one with the message counts before the summary;
 rosbag2 reads them in order, so the final one wins.
+
+The map: a metadata record named ``bimacppo`` (``mcap_io.RUN_METADATA``) with ``map_id``, the
+world's ``map_id`` parameter as the world holds it (a map id or a YAML path), so that
+``bimacppo-sim render-bag`` draws the recording on its own road without being told. The recorder
+asks the world node's parameter service (``world/get_parameters``, relative to its own namespace)
+as soon as that service appears, with an asynchronous request answered through the executor:
+recording never waits for it, and without a world (a recording of a player, of another source,
+of a graph without world) no record is written and nothing is reported. This is ROS's own
+answer to "which map does the world run on", so the recorder needs no parameter of its own that
+the bringup table would have to keep equal to the world's (a recorder started by hand, beside any
+world, gets it right too); the world reads ``map_id`` once at start-up, so the answer holds for
+the whole run. A request the world never answers (it went away) is dropped after
+``MAP_QUERY_TIMEOUT_S`` and asked again once a world serves it; a world that answers without a
+string ``map_id`` (not ours) is not asked again.
+
+When ``map_id`` names a file the recorder can read, the record also holds that file's text
+(``map_yaml``): a map file is typically local (a junction drawn for one experiment, a temporary
+file), a recording is what gets copied elsewhere, and the few kilobytes keep the bag renderable
+where the file does not exist or has changed since. The text is read when the world answers, from
+the path as the recorder resolves it: the same file the world loaded when both run on one machine
+from one working directory (the one-process graph, a launch); a path the recorder cannot read is
+recorded by name only. A record written at once (before any chunk completes) and handed to the
+OS, like the first ``rosbag2`` record, so a killed recording keeps it.
 """
 from __future__ import annotations
 
@@ -33,6 +56,7 @@ from typing import Dict, List
 
 import yaml
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rcl_interfaces.srv import GetParameters
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -45,6 +69,8 @@ from bimacppo_ros_common.runtime import optional_path_arg, run_single
 from . import mcap_io
 
 MIN_PERIOD_S = 0.01   # shortest discovery / flush period: a timer at 0 s fires on every spin
+MAP_QUERY_TIMEOUT_S = 5.0   # an unanswered request for the world's map_id is asked again after this
+WORLD_MAP_PARAMETER = "map_id"
 
 STRING_ARRAY = ParameterDescriptor(type=ParameterType.PARAMETER_STRING_ARRAY)
 
@@ -132,6 +158,10 @@ class McapRecorder(Node):
         self._type_warned = set()   # (topic, types) already warned about: once each, whenever it appears
         self._seq: Dict[int, int] = {}
         self._closed = False
+        self.map_id = ""            # the world's map_id, once recorded
+        self._map_client = self.create_client(GetParameters, f"{I.WORLD_NODE}/get_parameters")
+        self._map_request = None    # (future, monotonic time sent) while the world is asked
+        self._map_answered = False  # a world answered (with a map or without): not asked again
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(discovery, self.discover, clock=steady)
         self.create_timer(flush, self.flush, clock=steady)
@@ -148,6 +178,7 @@ class McapRecorder(Node):
         """Subscribe to every new topic that has a publisher (called by a timer, or directly)."""
         if self._closed:
             return
+        self._ask_world_map()
         for topic, types in self.get_topic_names_and_types():
             if not self._selected(topic) or (topic in self._subs and topic not in I.TOPIC_TYPES):
                 continue
@@ -200,6 +231,53 @@ class McapRecorder(Node):
             msg_cls, topic, lambda data, c=cid, t=topic: self._on_message(c, t, data),
             adapted_request(records, self.depth), raw=True)
         self.get_logger().info(f"recording {topic} [{type_name}]")
+
+    # ------------------------------------------------------------------ the world's map
+    def _ask_world_map(self) -> None:
+        """Ask the world's parameter service for its map_id, once it serves (never waits)."""
+        if self._map_answered:
+            return
+        if self._map_request is not None:
+            future, sent = self._map_request
+            if time.monotonic() - sent < MAP_QUERY_TIMEOUT_S:
+                return
+            self._map_client.remove_pending_request(future)   # the world went away: ask the next one
+            self._map_request = None
+        if not self._map_client.service_is_ready():
+            return
+        future = self._map_client.call_async(GetParameters.Request(names=[WORLD_MAP_PARAMETER]))
+        self._map_request = (future, time.monotonic())
+        future.add_done_callback(self._on_world_map)
+
+    def _on_world_map(self, future) -> None:
+        if self._map_request is None or self._map_request[0] is not future:
+            return                                           # a request given up on
+        self._map_request = None
+        self._map_answered = True
+        try:
+            values = future.result().values
+        except Exception:   # noqa: BLE001 - a failed request: the bag just names no map
+            return
+        if len(values) != 1 or values[0].type != ParameterType.PARAMETER_STRING or not values[0].string_value:
+            return
+        self._write_map(values[0].string_value)
+
+    def _write_map(self, map_id: str) -> None:
+        record = {mcap_io.MAP_ID_KEY: map_id}
+        if os.path.isfile(map_id):
+            try:
+                with open(map_id, encoding="utf-8") as fh:
+                    record[mcap_io.MAP_YAML_KEY] = fh.read()
+            except (OSError, UnicodeDecodeError):
+                pass                                         # recorded by name only
+        with self._lock:
+            if self._closed:
+                return
+            self._writer.add_metadata(mcap_io.RUN_METADATA, record)
+            self._file.flush()
+        self.map_id = map_id
+        with_text = " with its text" if mcap_io.MAP_YAML_KEY in record else ""
+        self.get_logger().info(f"the world runs on map {map_id}: recorded{with_text}")
 
     # ------------------------------------------------------------------ writing
     def _on_message(self, channel_id: int, topic: str, data: bytes) -> None:
