@@ -34,7 +34,8 @@ the bringup table would have to keep equal to the world's (a recorder started by
 world, gets it right too); the world reads ``map_id`` once at start-up, so the answer holds for
 the whole run. A request the world never answers (it went away) is dropped after
 ``MAP_QUERY_TIMEOUT_S`` and asked again once a world serves it; a world that answers without a
-string ``map_id`` (not ours) is not asked again.
+string ``map_id`` (not ours) is not asked again. The first answer is the recording's map: a world
+restarted on another map during one recording is not followed.
 
 When ``map_id`` names a file the recorder can read, the record also holds that file's text
 (``map_yaml``): a map file is typically local (a junction drawn for one experiment, a temporary
@@ -42,8 +43,8 @@ file), a recording is what gets copied elsewhere, and the few kilobytes keep the
 where the file does not exist or has changed since. The text is read when the world answers, from
 the path as the recorder resolves it: the same file the world loaded when both run on one machine
 from one working directory (the one-process graph, a launch); a path the recorder cannot read is
-recorded by name only. A record written at once (before any chunk completes) and handed to the
-OS, like the first ``rosbag2`` record, so a killed recording keeps it.
+recorded by name only. The record is written (outside any chunk) and handed to the OS as soon as
+the answer arrives, so a killed recording keeps it too.
 """
 from __future__ import annotations
 
