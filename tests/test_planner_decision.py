@@ -189,8 +189,9 @@ def test_timeout_pays_the_failure_terms_only_when_terminal():
         EnvConfig.load(overrides={"reward.threat_entry": 1.0})
 
 
-def test_hold_decodes_a_zero_speed_to_the_ev_pose_whatever_the_waypoint():
-    route = np.array([[0.0, float(y), math.pi / 2] for y in range(0, 40, 3)])
+def test_hold_decodes_a_zero_speed_to_the_ev_position_facing_along_the_route():
+    # a route that turns: WP0's heading differs from the EV's own, and hold takes the route's
+    route = np.array([[0.0, float(y), math.pi / 2 + 0.02 * y] for y in range(0, 40, 3)])
     tr = WaypointTracker(route, 5)
     tr.update(0.0, 1.0)
     ego = np.array([0.2, 1.0, 6.0, 1.5])
@@ -201,7 +202,8 @@ def test_hold_decodes_a_zero_speed_to_the_ev_pose_whatever_the_waypoint():
     for a1 in range(5):
         for a3 in range(3):
             x, changed = decode_action([a1, 0, a3], tr, hold, lateral, ego)
-            np.testing.assert_array_equal(x, [0.2, 1.0, 0.0, 1.5])
+            np.testing.assert_array_equal(x, [0.2, 1.0, 0.0, tr.candidates()[0][2]])
+            assert x[3] != ego[3]
             assert not changed
             xp, _ = decode_action([a1, 0, a3], tr, paper, lateral, ego)      # the paper: the waypoint at 0 m/s
             assert xp[2] == 0.0 and xp[1] == pytest.approx(tr.candidates()[a1][1])

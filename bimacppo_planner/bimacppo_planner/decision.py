@@ -176,8 +176,11 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
 
     ``lateral_point(x, y, psi, side)`` gives the matching point on the adjacent lane or None;
     where there is no adjacent lane the waypoint stays (and it does not count as a lane change).
-    With ``cfg.zero_speed == "hold"`` a zero speed (A2 = 0 m/s) means "stop where you are": x_IMR
-    is the EV's own pose ``ego`` = [x, y, v, psi] at 0 m/s, whatever A1 and A3 say.
+    With ``cfg.zero_speed == "hold"`` a zero speed (A2 = 0 m/s) means "stop where you are, facing
+    along the route": x_IMR is the EV's own position (``ego`` = [x, y, v, psi]) at 0 m/s with the
+    heading of WP0, the nearest waypoint ahead, whatever A1 and A3 say. The route's heading, not
+    the EV's own, because a stop ordered inside a turn brakes over a few metres: holding the
+    current heading would straighten the wheel there and leave the lane.
     """
     a1, a2, a3 = int(action[0]), int(action[1]), int(action[2])
     if not (0 <= a1 < cfg.n_waypoints and 0 <= a2 < len(cfg.speeds) and 0 <= a3 < len(cfg.lane_change)):
@@ -185,7 +188,8 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     if cfg.zero_speed == "hold" and cfg.speeds[a2] == 0.0:
         if ego is None:
             raise ValueError("action.zero_speed 'hold' needs the EV pose (ego) to decode a stop")
-        return np.array([float(ego[0]), float(ego[1]), 0.0, float(ego[3])], dtype=np.float64), False
+        return np.array([float(ego[0]), float(ego[1]), 0.0, float(tracker.candidates()[0][2])],
+                        dtype=np.float64), False
     wx, wy, wpsi = tracker.candidates()[a1]
     side = cfg.lane_change[a3]
     changed = False
