@@ -213,3 +213,51 @@ def test_idle_clear_shaping_prices_standing_only_while_the_junction_is_clear(mon
         kinds["threatened"] += int(np.sum(standing & (log1[:, 1] == 1.0)))
         assert r1 - r2 == pytest.approx(price / every * idle_clear, abs=1e-9)
     assert kinds["clear"] > 0 and kinds["threatened"] > 0, kinds
+
+
+def test_threat_speed_shaping_prices_only_threatened_approaches_too_fast_to_stop(monkeypatch):
+    """The same scenarios and actions with and without the threat-speed term: the trajectories are
+    the same, and the return is lower by exactly |threat_speed| / decision_every per tick that
+    began with the junction threatened, the EV outside the box, faster than idle_speed and unable
+    to stop before the box at the yield rule's braking deceleration (v^2 > 2 b d). A policy that
+    drives at 8 m/s towards the junction meets ticks of both kinds (too fast and not yet)."""
+    import bimacppo_learning.batch as batch_mod
+    from bimacppo_sim.config import DriverConfig
+
+    decel = DriverConfig.load().stop_decel
+    base = EXT.to_dict()
+    price = -0.4
+    shaped = EnvConfig.from_dict({**base, "reward": {**base["reward"], "threat_speed": price, "idle_speed": 1.0}})
+    plain = EnvConfig.from_dict(base)
+    every = shaped.action.decision_every
+    go = np.array([[4, 4, 1]])          # farthest waypoint at 8 m/s: never yields
+    real_test = batch_mod.junction_threatened
+    kinds = {"priced": 0, "threatened_but_can_stop": 0}
+    for k in range(6):
+        runs = []
+        for cfg in (shaped, plain):
+            log = []                         # (speed, distance to the box, threatened) per tested tick
+
+            def test(world, tcfg, log=log):
+                out = real_test(world, tcfg)
+                log.append([world.ego_tuple()[2], batch_mod.junction_distance(world), out])
+                return out
+
+            monkeypatch.setattr(batch_mod, "junction_threatened", test)
+            b = IntersectionBatch(1, config=cfg)
+            b.reset(0, seed=k, options={"n_sv": 3, "task": k % 3})
+            while True:
+                _, _, te, tr, _ = b.step(go)
+                if te[0] or tr[0]:
+                    break
+            runs.append((b.returns[0], np.array(log, float), b.worlds[0].ego_tuple()))
+        (r1, log1, ego1), (r2, log2, ego2) = runs
+        np.testing.assert_array_equal(ego1, ego2)
+        np.testing.assert_array_equal(log1, log2)
+        v, d, threat = log1[:, 0], log1[:, 1], log1[:, 2] == 1.0
+        too_fast = (v > 1.0) & (v ** 2 > 2.0 * decel * np.maximum(d, 0.0))
+        priced = int(np.sum(threat & too_fast))
+        kinds["priced"] += priced
+        kinds["threatened_but_can_stop"] += int(np.sum(threat & ~too_fast))
+        assert r1 - r2 == pytest.approx(price / every * priced, abs=1e-9)
+    assert kinds["priced"] > 0 and kinds["threatened_but_can_stop"] > 0, kinds

@@ -208,6 +208,9 @@ class IntersectionBatch:
                     threatened = junction_threatened(self.worlds[i], tcfg)
                 if rcfg.idle_clear != 0.0 and not threatened and X0[i, 2] < rcfg.idle_speed:
                     shaping[i] += rcfg.idle_clear / acfg.decision_every
+                if rcfg.threat_speed != 0.0 and threatened and X0[i, 2] > rcfg.idle_speed and \
+                        X0[i, 2] ** 2 > 2.0 * tcfg.stop_decel * max(junction_distance(self.worlds[i]), 0.0):
+                    shaping[i] += rcfg.threat_speed / acfg.decision_every
                 res = self.worlds[i].step(sol.u[i])
                 if not self.crossed[i] and junction_distance(self.worlds[i]) <= 0.0:
                     self.crossed[i] = True

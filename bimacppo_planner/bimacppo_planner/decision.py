@@ -62,6 +62,7 @@ class RewardConfig:
     timeout_mode: str = setting(choices=TIMEOUT_MODES)
     threat_entry: float = setting(hi=0.0)
     idle_clear: float = setting(hi=0.0)
+    threat_speed: float = setting(hi=0.0)
     idle_speed: float = setting(lo=0.0)
     lane_change: float
     step: float
