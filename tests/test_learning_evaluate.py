@@ -80,6 +80,45 @@ def test_an_object_with_predict_or_act_is_evaluated_like_its_file():
     assert [c.policy for c in from_file] == ["policy"]
 
 
+class CountingSampled:
+    """What action_selection='sample' must amount to: the file's policy sampled per head, the
+    generator seeded per episode from (seed, scenario seed); it counts the draws that differ
+    from the argmax, to show that sampling changed something."""
+
+    def __init__(self, policy, seed):
+        self.policy, self.seed, self.off_argmax = policy, seed, 0
+        self.obs_dim, self.nvec = policy.obs_dim, policy.nvec
+
+    def begin_episode(self, scenario_seed):
+        self.rng = np.random.default_rng([self.seed, int(scenario_seed)])
+
+    def act(self, obs):
+        a = self.policy.act(obs, deterministic=False, rng=self.rng)
+        self.off_argmax += int(np.any(a != self.policy.act(obs)))
+        return a
+
+
+def test_sampled_actions_are_the_trained_distribution_seeded_per_episode_and_reproducible(capsys):
+    path = shipped_policy_path()
+    cell = {**CELL, "n_svs": [3], "episodes": 3}
+    cfg = env_config_of(load_policy(path))
+    runs = [ev.evaluate(path, workers=w, random_row=False, action_selection="sample", sample_seed=s, **cell)
+            for w, s in ((1, 5), (2, 5), (1, 6))]
+    assert _outcomes(runs[0]) == _outcomes(runs[1])               # same seed: same run, any worker count
+    reference = CountingSampled(load_policy(path), 5)
+    by_hand = ev.evaluate(reference, workers=1, random_row=False, env_config=cfg, **cell)
+    assert _outcomes(by_hand) == _outcomes(runs[0])
+    assert reference.off_argmax > 0                                 # sampling is not the argmax
+    assert _outcomes(runs[2]) != _outcomes(runs[0])                # another seed draws other actions
+    with pytest.raises(ev.EvaluationError, match="needs a policy file"):
+        ev.evaluate(load_policy(path), workers=1, random_row=False, action_selection="sample", **cell)
+    with pytest.raises(ValueError, match="action_selection"):
+        ev.evaluate(path, workers=1, random_row=False, action_selection="mode", **cell)
+    assert evaluate_main(["--sample", "--sample-seed", "5", "--episodes", "1", "--n-sv", "1", "--tasks", "straight",
+                          "--workers", "1", "--no-random-row"]) == 0
+    assert "actions sampled (seed 5)" in capsys.readouterr().out
+
+
 def test_random_row_is_seeded_on_the_same_scenarios_and_shown_in_every_table(tmp_path):
     res = ev.evaluate(None, workers=2, **CELL)
     assert [(c.policy, c.task, c.n_sv, c.n) for c in res] == [("policy", 1, 1, 1), ("random", 1, 1, 1)]

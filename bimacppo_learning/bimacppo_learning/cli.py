@@ -253,6 +253,10 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed-set", choices=("validation", "test"), default="test",
                    help="scenario seeds: validation (for choosing configs, checkpoints, variants) or test "
                         "(reporting only); disjoint sets, default test")
+    p.add_argument("--sample", action="store_true",
+                   help="run the policy as trained, sampling each head's action (seeded per episode by "
+                        "--sample-seed and the scenario seed) instead of the argmax per head")
+    p.add_argument("--sample-seed", type=int, default=0, help="seed of --sample's action draws")
     p.add_argument("--out", type=Path, default=None,
                    help="write OUT.md (the table), OUT.csv (the policy's cells) and OUT_random.csv")
     p.add_argument("--title", default="")
@@ -293,14 +297,18 @@ def evaluate_main(argv=None) -> int:
     try:
         results = evaluate(args.policy, args.map, args.n_sv, tasks, args.episodes, args.workers, args.mpc,
                            progress, env_config=args.env_config, random_row=not args.no_random_row,
-                           seed_set=args.seed_set, mpc_config=args.mpc_config)
+                           seed_set=args.seed_set, mpc_config=args.mpc_config,
+                           action_selection="sample" if args.sample else "argmax", sample_seed=args.sample_seed)
     except (CheckpointError, EvaluationError, ConfigError) as exc:
         return fail(prog, exc)
     finally:
         bar.close()
-    print(to_markdown(results, args.title))
+    title = args.title
+    if args.sample:
+        title = (f"{title}: " if title else "") + f"actions sampled (seed {args.sample_seed})"
+    print(to_markdown(results, title))
     if args.out:
-        md, cs = write_outputs(results, args.out, args.title)
+        md, cs = write_outputs(results, args.out, title)
         print(f"wrote {md} and {cs}")
     return 0
 

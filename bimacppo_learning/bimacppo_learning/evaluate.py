@@ -152,6 +152,12 @@ def _materialise(spec: tuple, env_config) -> tuple[str, Any]:
         from bimacppo_planner.agent import load_policy
 
         return POLICY, load_policy(value)
+    if kind == "sampled":
+        from bimacppo_planner.agent import load_policy
+        from bimacppo_planner.policy import SampledPolicy
+
+        path, seed = value
+        return POLICY, SampledPolicy(load_policy(path), seed)
     if kind == RANDOM:
         return RANDOM, RandomPolicy(env_config.nvec, value)
     return POLICY, value
@@ -330,8 +336,13 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
              tasks: Iterable[int] = (0, 1, 2), episodes: int = 100, workers: int = 2,
              mpc_solver: str = "fast", progress: Callable | None = None, *,
              env_config: Any = None, random_row: bool = True, random_seed: int = 0,
-             seed_set: str = "test", mpc_config: Any = None) -> list[CellResult]:
+             seed_set: str = "test", mpc_config: Any = None, action_selection: str = "argmax",
+             sample_seed: int = 0) -> list[CellResult]:
     """Run the protocol; see the module docstring.
+
+    ``action_selection`` says how a policy file acts: ``argmax`` per head (deterministic), or
+    ``sample``: the trained stochastic policy (``bimacppo_planner.policy.SampledPolicy``), its
+    generator seeded per episode from ``(sample_seed, scenario seed)``.
 
     ``env_config`` (EnvConfig, YAML path or dict) replaces the policy's own (a policy file's
     stored one, else the packaged env.yaml). ``random_row`` adds the random policy's cells
@@ -352,6 +363,13 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
         raise ValueError(f"workers must be >= 1, got {workers}")
     check_cells(map_id, n_svs, tasks)
     spec, loaded, cfg = resolve_policy(policy, env_config)
+    from bimacppo_planner.policy import ACTION_SELECTIONS
+    if action_selection not in ACTION_SELECTIONS:
+        raise ValueError(f"action_selection must be one of {ACTION_SELECTIONS}, got {action_selection!r}")
+    if action_selection == "sample":
+        if spec[0] != "path":
+            raise EvaluationError("action_selection 'sample' needs a policy file; a policy object samples itself")
+        spec = ("sampled", (spec[1], int(sample_seed)))
     cells = [(t, n) for t in tasks for n in n_svs]
     mpc_config = resolve_mpc_config(loaded, mpc_config)   # a bad file fails here, once, not in every worker
     mpc_key = None if mpc_config is None else mpc_config.to_dict()

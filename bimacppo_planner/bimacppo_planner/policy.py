@@ -163,3 +163,29 @@ class Policy:
             p = np.exp(h - h.max())
             out.append(int(rng.choice(len(p), p=p / p.sum())))
         return np.array(out, np.int64)
+
+
+ACTION_SELECTIONS = ("argmax", "sample")
+
+
+class SampledPolicy:
+    """A policy run as the stochastic policy PPO trained: every head's action drawn from its
+    categorical distribution, with the generator re-seeded from ``(seed, episode)`` at each
+    episode so that a run is reproducible and does not depend on the order episodes are played.
+
+    Why it exists beside the argmax: the heads are independent, so the per-head argmax is the
+    joint mode, but the mode of a head need not carry the head's decision. With five speeds, a
+    0 m/s that holds 35 % of the mass wins the argmax although 65 % says "move", and a policy
+    trained to wait and then go can stand forever under argmax where its own distribution goes."""
+
+    def __init__(self, policy: Policy, seed: int = 0):
+        self.policy = policy
+        self.seed = int(seed)
+        self.obs_dim, self.nvec, self.path = policy.obs_dim, policy.nvec, policy.path
+        self.rng = np.random.default_rng([self.seed, 0])
+
+    def begin_episode(self, episode: int) -> None:
+        self.rng = np.random.default_rng([self.seed, int(episode)])
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return self.policy.act(obs, deterministic=False, rng=self.rng)
