@@ -455,7 +455,13 @@ def bwd_solve(Lc, b, x, m):
 
 @njit(cache=True)
 def _ws_add(Lh, G, idx, Y, Ls, nW, n, y, tmp):
-    """Append constraint idx to the working set if independent; returns the new size."""
+    """Append constraint idx to the working set if independent; returns the new size.
+
+    n rows already span R^n, so the row is dependent whatever the pivot test says: with a
+    full, ill-conditioned working set the residual dd (zero in exact arithmetic) can round
+    above the test's threshold, and appending would write past Y, Ls and W (n slots each)."""
+    if nW >= n:
+        return nW
     fwd_solve(Lh, G[idx], y, n)
     yy = 0.0
     for i in range(n):
