@@ -1,0 +1,127 @@
+"""The QP's working set never outgrows its n slots: a full working set takes no further row,
+and hold and go problems (stopping on the spot, or a turn with the steering and acceleration
+on their bounds, where the working set fills up) run through solve_batch without an
+out-of-bounds access. numba does not check bounds by default, so an overfull working set
+would write past its arrays and corrupt the heap (a later ``free(): invalid next size``);
+the subprocess test runs the kernels with NUMBA_BOUNDSCHECK=1 and a fresh cache so that
+such a write raises instead."""
+import os
+import subprocess
+import sys
+import tempfile
+
+import numpy as np
+
+from bimacppo_mpc import _kernels as K
+
+# Two rows about 1e-5 rad apart and a third in their span: with n = 2 the first two fill the
+# working set, and the third's residual (zero in exact arithmetic) rounds above the pivot test.
+NEAR_PARALLEL = np.array([[0.6672432157058636, 0.4607751075579932],
+                          [0.48157118346373806, 0.3325086278934417],
+                          [0.0012326808666994523, 0.0008306569615112908]])
+
+
+def _fill(G, n, slots):
+    """Offer every row of G to an empty working set whose arrays have `slots` >= n columns."""
+    Lh = np.eye(n)
+    Y = np.zeros((n, slots))
+    Ls = np.zeros((slots, slots))
+    y = np.zeros(n)
+    tmp = np.zeros(slots)
+    sizes = []
+    nW = 0
+    for c in range(G.shape[0]):
+        nW = K._ws_add(Lh, G, c, Y, Ls, nW, n, y, tmp)
+        sizes.append(nW)
+    return sizes, Y, Ls
+
+
+def test_a_full_working_set_takes_no_further_row():
+    # arrays one slot larger than n, so a wrong append shows as size 3 instead of corrupting memory
+    sizes, Y, Ls = _fill(NEAR_PARALLEL, 2, 3)
+    assert sizes == [1, 2, 2]
+    assert np.all(Y[:, 2] == 0.0) and np.all(Ls[2] == 0.0)
+
+
+def test_independent_rows_still_fill_the_working_set():
+    rng = np.random.default_rng(0)
+    G = rng.standard_normal((5, 4))
+    sizes, Y, Ls = _fill(G, 4, 4)
+    assert sizes == [1, 2, 3, 4, 4]
+    # Ls is the Cholesky factor of Y'Y (the working set's Schur complement)
+    assert np.allclose(Ls @ Ls.T, Y.T @ Y)
+
+
+# Cold problems (found by probing the kernel) whose SQP has a QP step blocked by a row while the
+# working set is already full: x0, x_ref (a turn of ~1.5 rad), u_prev.
+FULL_WORKING_SET = [
+    ([12.61, -16.64, 8.79, 2.03], [33.55, -5.29, 6.0, 0.5], [0.0, 0.0]),
+    ([-25.81, 11.75, 9.28, 2.49], [-16.43, 24.06, 0.0, 0.92], [0.0, 0.0]),
+    ([1.51, -10.33, 0.05, -1.5], [12.63, -1.7, 8.0, 0.66], [-3.0, 0.0]),
+]
+
+SCRIPT = r"""
+import math, sys
+import numpy as np
+from bimacppo_mpc import MPCConfig, make_controller
+from bimacppo_mpc import _kernels as K
+
+G = np.array(%r)
+n = 2
+Y = np.zeros((n, n)); Ls = np.zeros((n, n)); y = np.zeros(n); tmp = np.zeros(n)
+nW = 0
+for c in range(3):
+    nW = K._ws_add(np.eye(n), G, c, Y, Ls, nW, n, y, tmp)
+assert nW == n, nW
+
+cfg = MPCConfig.load()
+ctrl = make_controller(cfg, "fast")
+ctrl.set_threads(1)
+
+def check(res):
+    errors = [s for s in res.status if s.startswith("solver_error")]
+    assert not errors, errors[0]
+
+full = %r
+check(ctrl.solve_batch(*(np.array([f[j] for f in full]) for j in range(3))))
+
+rng = np.random.default_rng(7)
+B, T, solved = 16, 15, 0
+for episode in range(%d):
+    x = np.zeros((B, 4))
+    x[:, :2] = rng.uniform(-30.0, 30.0, (B, 2))
+    x[:, 2] = rng.choice([0.0, 0.0, 0.05, 0.3, 1.0, 3.0, 6.0, 9.0], B)
+    x[:, 3] = rng.uniform(-math.pi, math.pi, B)
+    # the route's heading: along the car, or turned away from it (a stop ordered in a turn)
+    heading = x[:, 3] + rng.choice([0.0, 0.3, -0.8, math.pi / 2, -math.pi / 2], B)
+    u = np.stack([rng.choice([cfg.a_min, cfg.a_max, 0.0, -3.0], B),
+                  rng.choice([cfg.delta_min, cfg.delta_max, 0.0], B)], 1)
+    ctrl.reset()
+    for t in range(T):
+        # hold (here, at 0 m/s) or go (a point 5-25 m away along the route, at a planner speed)
+        ref = np.stack([x[:, 0], x[:, 1], np.zeros(B), heading], 1)
+        go = rng.uniform(size=B) < 0.5
+        d = rng.uniform(5.0, 25.0, go.sum())
+        ref[go, 0] += d * np.cos(heading[go])
+        ref[go, 1] += d * np.sin(heading[go])
+        ref[go, 2] = rng.choice([2.0, 4.0, 6.0, 8.0], go.sum())
+        res = ctrl.solve_batch(x, ref, u)
+        check(res)
+        X = np.empty((2, 4))
+        for i in range(B):
+            K.rollout(x[i], res.u[i].copy(), ctrl.P, X)
+            x[i] = X[1]
+        u = res.u.copy()
+        solved += B
+print("SOLVED", solved)
+"""
+
+
+def test_hold_and_go_problems_stay_in_bounds_under_numba_boundscheck():
+    episodes = 8
+    code = SCRIPT % (NEAR_PARALLEL.tolist(), FULL_WORKING_SET, episodes)
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_BOUNDSCHECK="1", NUMBA_CACHE_DIR=cache)
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900, env=env)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip().endswith(f"SOLVED {episodes * 16 * 15}")
