@@ -169,48 +169,53 @@ def test_threat_entry_shaping_changes_returns_only_and_only_on_threatened_entrie
 
 
 
+def _run_logging_threat_test(monkeypatch, cfg, action, seed, task, max_decisions=1000):
+    """One N_sv = 3 episode (at most ``max_decisions``) of a constant ``action``, logging at every
+    call of the yield rule's threat test (the start of each tick before the junction) the EV's
+    speed, its distance to the box and the verdict. Returns (return, log, final ego, crossed)."""
+    import bimacppo_learning.batch as batch_mod
+
+    real_test, log = batch_mod.junction_threatened, []
+
+    def test(world, tcfg):
+        out = real_test(world, tcfg)
+        log.append([world.ego_tuple()[2], batch_mod.junction_distance(world), out])
+        return out
+
+    monkeypatch.setattr(batch_mod, "junction_threatened", test)
+    b = IntersectionBatch(1, config=cfg)
+    b.reset(0, seed=seed, options={"n_sv": 3, "task": task})
+    for _ in range(max_decisions):
+        _, _, te, tr, _ = b.step(action)
+        if te[0] or tr[0]:
+            break
+    monkeypatch.setattr(batch_mod, "junction_threatened", real_test)
+    return b.returns[0], np.array(log, float), b.worlds[0].ego_tuple(), bool(b.crossed[0])
+
+
 def test_idle_clear_shaping_prices_standing_only_while_the_junction_is_clear(monkeypatch):
     """The same scenarios and actions with and without the idle-clear term: the trajectories are
     the same, and the return is lower by exactly |idle_clear| / decision_every per tick that began
     with the EV slower than idle_speed while the yield rule's test was false (or the junction was
     passed). A stop-at-WP0 policy comes to a stand and stays, so it stands both while threatened
     and while clear."""
-    import bimacppo_learning.batch as batch_mod
-
     base = EXT.to_dict()
     price = -0.3
     shaped = EnvConfig.from_dict({**base, "reward": {**base["reward"], "idle_clear": price, "idle_speed": 1.0}})
     plain = EnvConfig.from_dict(base)
     every = shaped.action.decision_every
     stop = np.array([[0, 0, 1]])        # nearest waypoint at 0 m/s
-    real_test = batch_mod.junction_threatened
     kinds = {"clear": 0, "threatened": 0}
     for k in range(4):
-        runs = []
-        for cfg in (shaped, plain):
-            log = []                                      # (speed, threatened) at the start of each tick
-            b = IntersectionBatch(1, config=cfg)
-            b.reset(0, seed=k, options={"n_sv": 3, "task": k % 3})
-
-            def test(world, tcfg, log=log):
-                out = real_test(world, tcfg)
-                log.append([world.ego_tuple()[2], out])
-                return out
-
-            monkeypatch.setattr(batch_mod, "junction_threatened", test)
-            for _ in range(60):
-                _, _, te, tr, _ = b.step(stop)
-                if te[0] or tr[0]:
-                    break
-            runs.append((b.returns[0], np.array(log, float), b.worlds[0].ego_tuple()))
-        (r1, log1, ego1), (r2, log2, ego2) = runs
+        (r1, log1, ego1, crossed), (r2, log2, ego2, _) = [
+            _run_logging_threat_test(monkeypatch, cfg, stop, k, k % 3, max_decisions=60) for cfg in (shaped, plain)]
         np.testing.assert_array_equal(ego1, ego2)
         np.testing.assert_array_equal(log1, log2)
-        assert not b.crossed[0]                       # the test sees every tick before the junction
+        assert not crossed                            # the test sees every tick before the junction
         standing = log1[:, 0] < 1.0
-        idle_clear = int(np.sum(standing & (log1[:, 1] == 0.0)))
+        idle_clear = int(np.sum(standing & (log1[:, 2] == 0.0)))
         kinds["clear"] += idle_clear
-        kinds["threatened"] += int(np.sum(standing & (log1[:, 1] == 1.0)))
+        kinds["threatened"] += int(np.sum(standing & (log1[:, 2] == 1.0)))
         assert r1 - r2 == pytest.approx(price / every * idle_clear, abs=1e-9)
     assert kinds["clear"] > 0 and kinds["threatened"] > 0, kinds
 
@@ -221,7 +226,6 @@ def test_threat_speed_shaping_prices_only_threatened_approaches_too_fast_to_stop
     began with the junction threatened, the EV outside the box, faster than idle_speed and unable
     to stop before the box at the yield rule's braking deceleration (v^2 > 2 b d). A policy that
     drives at 8 m/s towards the junction meets ticks of both kinds (too fast and not yet)."""
-    import bimacppo_learning.batch as batch_mod
     from bimacppo_sim.config import DriverConfig
 
     decel = DriverConfig.load().stop_decel
@@ -231,27 +235,10 @@ def test_threat_speed_shaping_prices_only_threatened_approaches_too_fast_to_stop
     plain = EnvConfig.from_dict(base)
     every = shaped.action.decision_every
     go = np.array([[4, 4, 1]])          # farthest waypoint at 8 m/s: never yields
-    real_test = batch_mod.junction_threatened
     kinds = {"priced": 0, "threatened_but_can_stop": 0}
     for k in range(6):
-        runs = []
-        for cfg in (shaped, plain):
-            log = []                         # (speed, distance to the box, threatened) per tested tick
-
-            def test(world, tcfg, log=log):
-                out = real_test(world, tcfg)
-                log.append([world.ego_tuple()[2], batch_mod.junction_distance(world), out])
-                return out
-
-            monkeypatch.setattr(batch_mod, "junction_threatened", test)
-            b = IntersectionBatch(1, config=cfg)
-            b.reset(0, seed=k, options={"n_sv": 3, "task": k % 3})
-            while True:
-                _, _, te, tr, _ = b.step(go)
-                if te[0] or tr[0]:
-                    break
-            runs.append((b.returns[0], np.array(log, float), b.worlds[0].ego_tuple()))
-        (r1, log1, ego1), (r2, log2, ego2) = runs
+        (r1, log1, ego1, _), (r2, log2, ego2, _) = [
+            _run_logging_threat_test(monkeypatch, cfg, go, k, k % 3) for cfg in (shaped, plain)]
         np.testing.assert_array_equal(ego1, ego2)
         np.testing.assert_array_equal(log1, log2)
         v, d, threat = log1[:, 0], log1[:, 1], log1[:, 2] == 1.0
