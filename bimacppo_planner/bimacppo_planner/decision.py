@@ -43,6 +43,7 @@ class ActionConfig:
     lane_change: tuple[int, ...]
     decision_every: int = setting(lo=1)
     zero_speed: str = setting(choices=ZERO_SPEED_MODES)   # waypoint (paper) | hold: see env.yaml
+    chord_tol: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
 
     def _check(self) -> None:
         if self.lane_change != (-1, 0, 1):
@@ -170,6 +171,30 @@ class WaypointTracker:
         j = np.minimum(np.arange(self.idx, self.idx + self.n), len(self.route) - 1)
         return self.route[j]
 
+    def chord_limited(self, k: int, x: float, y: float, tol: float) -> int:
+        """The farthest of WP0..WPk whose chord from (x, y) passes every route point before it
+        within ``tol`` (m). The route is a polyline through its points, so checking its vertices
+        bounds the whole path between the EV and the waypoint. WP0 is always allowed: there is
+        no route point between the EV and it."""
+        r, m = self.route, len(self.route) - 1
+        for kk in range(k, 0, -1):
+            j = min(self.idx + kk, m)
+            dx, dy = r[j, 0] - x, r[j, 1] - y
+            length = math.hypot(dx, dy)
+            if length < 1e-9:
+                return kk
+            ok = True
+            for i in range(self.idx, j):
+                # distance of route point i from the segment EV -> waypoint
+                px, py = r[i, 0] - x, r[i, 1] - y
+                t = min(max((px * dx + py * dy) / (length * length), 0.0), 1.0)
+                if math.hypot(px - t * dx, py - t * dy) > tol:
+                    ok = False
+                    break
+            if ok:
+                return kk
+        return 0
+
 
 def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_point,
                   ego=None) -> tuple[np.ndarray, bool]:
@@ -181,7 +206,9 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     along the route": x_IMR is the EV's own position (``ego`` = [x, y, v, psi]) at 0 m/s with the
     heading of WP0, the nearest waypoint ahead, whatever A1 and A3 say. The route's heading, not
     the EV's own, because a stop ordered inside a turn brakes over a few metres: holding the
-    current heading would straighten the wheel there and leave the lane.
+    current heading would straighten the wheel there and leave the lane. With ``cfg.chord_tol``
+    set, A1 picks among the waypoints whose chord from the EV keeps to the route
+    (`WaypointTracker.chord_limited`), before any lane change is applied.
     """
     a1, a2, a3 = int(action[0]), int(action[1]), int(action[2])
     if not (0 <= a1 < cfg.n_waypoints and 0 <= a2 < len(cfg.speeds) and 0 <= a3 < len(cfg.lane_change)):
@@ -191,6 +218,10 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
             raise ValueError("action.zero_speed 'hold' needs the EV pose (ego) to decode a stop")
         return np.array([float(ego[0]), float(ego[1]), 0.0, float(tracker.candidates()[0][2])],
                         dtype=np.float64), False
+    if cfg.chord_tol is not None:
+        if ego is None:
+            raise ValueError("action.chord_tol needs the EV pose (ego) to decode a waypoint")
+        a1 = tracker.chord_limited(a1, float(ego[0]), float(ego[1]), float(cfg.chord_tol))
     wx, wy, wpsi = tracker.candidates()[a1]
     side = cfg.lane_change[a3]
     changed = False
