@@ -143,6 +143,9 @@ VARIANTS = {   # variant file -> what it changes relative to the packaged env.ya
     "studies/config/env_far_threat_speed.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0]}, "action": {"decision_every": 3},
          "reward": {"timeout_mode": "truncate", "threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1}},
+    "studies/config/env_far_chord.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0]},
+         "action": {"decision_every": 3, "chord_tol": 1.0}, "reward": {"timeout_mode": "truncate", "threat_entry": -10.0}},
     "studies/config/env_extended_safe.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}, "reward": {"collision_base": -30.0}},
@@ -237,3 +240,94 @@ def test_hold_decodes_a_zero_speed_to_the_ev_position_facing_along_the_route():
 def dataclasses_replace(obj, **kw):
     import dataclasses
     return dataclasses.replace(obj, **kw)
+
+
+def _turning_route(radius=8.0, spacing=3.0):
+    """10 m straight north, then a quarter circle to the right (east), then straight east."""
+    pts = [(0.0, float(y), math.pi / 2) for y in np.arange(-12.0, 0.0, spacing)]
+    n = int(round(radius * math.pi / 2 / spacing))
+    for k in range(n + 1):
+        th = math.pi - k * (math.pi / 2) / n            # on the circle around (radius, 0)
+        pts.append((radius + radius * math.cos(th), radius * math.sin(th), th - math.pi / 2))
+    x_end, y_end = pts[-1][0], pts[-1][1]
+    pts += [(x_end + spacing * k, y_end, 0.0) for k in range(1, 6)]
+    return np.array(pts)
+
+
+def _dense_deviation(route, i0, j, x, y):
+    """Largest distance from the chord (x, y) -> route[j] of the route polyline from route[i0]
+    to route[j], sampled densely (independent of the vertex rule under test)."""
+    a, b = np.array([x, y]), route[j, :2]
+    d = b - a
+    worst = 0.0
+    for i in range(i0, j):
+        for t in np.linspace(0.0, 1.0, 21):
+            p = route[i, :2] + t * (route[i + 1, :2] - route[i, :2]) - a
+            u = min(max(float(p @ d) / float(d @ d), 0.0), 1.0)
+            worst = max(worst, float(np.hypot(*(p - u * d))))
+    return worst
+
+
+@pytest.mark.parametrize("tol", [0.3, 1.0, 2.5])
+def test_chord_limit_folds_far_waypoints_back_only_where_the_route_turns(tol):
+    route = _turning_route()
+    lateral = lambda x, y, psi, side: (x - 3.5 * side, y, psi)     # noqa: E731
+    paper = ActionConfig(n_waypoints=5, speeds=(0.0, 2.0, 4.0, 6.0, 8.0), lane_change=(-1, 0, 1),
+                         decision_every=3, zero_speed="waypoint")
+    chord = dataclasses_replace(paper, chord_tol=tol)
+    folded = 0
+    for y0 in np.arange(-11.0, 9.0, 0.7):
+        tr = WaypointTracker(route, 5)
+        # the EV on the route: on the straight part, then on the arc
+        if y0 < 0.0:
+            x, y = 0.0, y0
+        else:
+            th = math.pi - min(y0 / 8.0, 1.0) * math.pi / 2
+            x, y = 8.0 + 8.0 * math.cos(th), 8.0 * math.sin(th)
+        tr.update(x, y)
+        ego = np.array([x, y, 5.0, 1.0])
+        for a1 in range(5):
+            got, _ = decode_action([a1, 2, 1], tr, chord, lateral, ego)
+            k = next(k for k in range(5) if np.allclose(tr.candidates()[k][[0, 1]], got[[0, 1]]))
+            assert k <= a1
+            m = len(route) - 1
+            dev = lambda kk: _dense_deviation(route, tr.idx, min(tr.idx + kk, m), x, y)  # noqa: E731
+            if k > 0:
+                assert dev(k) <= tol + 1e-9          # the chosen chord keeps to the route
+            if k < a1:
+                folded += 1
+                assert dev(k + 1) > tol - 1e-9       # and the next one out would not
+            # lane changes still apply to the folded waypoint
+            lc, changed = decode_action([a1, 2, 0], tr, chord, lateral, ego)
+            assert changed and lc[0] == pytest.approx(got[0] + 3.5)
+        # on the straight approach, far from the turn, nothing changes
+        if y0 < -11.0 + 0.7 * 2:
+            for a1 in range(3):
+                np.testing.assert_array_equal(decode_action([a1, 3, 1], tr, chord, lateral, ego)[0],
+                                              decode_action([a1, 3, 1], tr, paper, lateral, ego)[0])
+    assert folded > 0                                # the turn does fold waypoints back
+    with pytest.raises(ValueError, match="needs the EV pose"):
+        decode_action([4, 2, 1], WaypointTracker(route, 5), chord, lateral)
+    with pytest.raises(ConfigError, match="chord_tol"):
+        EnvConfig.load(overrides={"action.chord_tol": 0.0})
+
+
+def test_chord_limit_keeps_a_constant_far_waypoint_on_the_road_in_the_empty_right_turn():
+    """End to end through the env and the NMPC: WP4 held at 2 m/s in the right turn cuts across
+    the kerb without the limit and turns with it."""
+    from bimacppo_common.conventions import TASKS
+    from bimacppo_learning.evaluate import evaluate
+    from conftest import REPO
+
+    class Constant:
+        def act(self, obs):
+            return np.array([4, 1, 1], np.int64)
+    out = {}
+    for name, path in (("paper", "bimacppo_learning/bimacppo_learning/config/env_yield_far.yaml"),
+                       ("chord", "studies/config/env_far_chord.yaml")):
+        cfg = EnvConfig.load(REPO / path)
+        c = evaluate(Constant(), map_id="dual_lane_4way", n_svs=(0,), tasks=(TASKS.index("right"),), episodes=3,
+                     workers=1, random_row=False, env_config=cfg, seed_set="validation")[0]
+        out[name] = c.counts
+    assert out["paper"].get("collision", 0) == 3
+    assert out["chord"].get("success", 0) == 3
