@@ -213,6 +213,7 @@ def test_cli_without_a_policy_evaluates_the_shipped_one_beside_the_random_row(ca
     (["--map", "three_lane_straight"], "has no task 'left'"),
     (["--episodes", "0"], "--episodes must be in 1..1000"),
     (["--workers", "0"], "--workers must be >= 1"),
+    (["--slow-svs", "-1"], "--slow-svs must be >= 0"),
     (["/nonexistent/policy.pt"], "/nonexistent/policy.pt: no such file"),
 ])
 def test_cli_refusals_are_one_error_line(argv, says, capsys):
@@ -223,3 +224,36 @@ def test_cli_refusals_are_one_error_line(argv, says, capsys):
 def test_checkpoint_error_survives_pickling():
     e = pickle.loads(pickle.dumps(CheckpointError("/x/p.pt", "no such file")))
     assert (type(e), e.path, e.problem, str(e)) == (CheckpointError, "/x/p.pt", "no such file", "/x/p.pt: no such file")
+
+
+def test_slow_svs_runs_the_overtaking_protocol_the_way_training_draws_it():
+    """evaluate(slow_svs=N) slows draw_n_slow(seed, N_sv, N) SVs per episode, as training's
+    --slow-svs does: the same counts as a hand-written loop that sets n_slow itself."""
+    from collections import Counter
+
+    from bimacppo_common.conventions import TASKS
+    from bimacppo_learning.batch import draw_n_slow
+    from bimacppo_learning.env import IntersectionEnv
+
+    policy = load_policy(shipped_policy_path())
+    j, n = TASKS.index("straight"), 4
+    [cell] = ev.evaluate(shipped_policy_path(), "three_lane_straight", (3,), (j,), n, workers=1,
+                         random_row=False, seed_set="validation", slow_svs=2)
+    env = IntersectionEnv(map_id="three_lane_straight", config=env_config_of(policy))
+    hand, slowed = Counter(), []
+    for k in range(n):
+        seed = ev.eval_seed(j, 3, k, "validation")
+        obs, _ = env.reset(options={"n_sv": 3, "task": "straight", "scenario_seed": seed,
+                                    "n_slow": draw_n_slow(seed, 3, 2)})
+        slowed.append(sum(bool(sv.slow) for sv in env.world.svs))
+        done = False
+        while not done:
+            obs, _, term, trunc, info = env.step(policy.act(obs, deterministic=True))
+            done = term or trunc
+        hand[info["outcome"]] += 1
+    env.close()
+    assert cell.counts == hand
+    assert slowed == [draw_n_slow(ev.eval_seed(j, 3, k, "validation"), 3, 2) for k in range(n)]
+    assert any(slowed)                                  # the draw does slow SVs in these episodes
+    with pytest.raises(ValueError, match="slow_svs must be >= 0"):
+        ev.evaluate(shipped_policy_path(), "three_lane_straight", (3,), (j,), 1, workers=1, slow_svs=-1)

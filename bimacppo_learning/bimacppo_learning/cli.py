@@ -257,6 +257,10 @@ def _eval_parser() -> argparse.ArgumentParser:
                    help="run the policy as trained, sampling each head's action (seeded per episode by "
                         "--sample-seed and the scenario seed) instead of the argmax per head")
     p.add_argument("--sample-seed", type=int, default=0, help="seed of --sample's action draws")
+    p.add_argument("--slow-svs", type=int, default=0, metavar="N",
+                   help="slow down 0..N SVs per episode, drawn from the scenario seed as in training's --slow-svs "
+                        "(the overtaking tests on three_lane_straight: --map three_lane_straight --tasks straight "
+                        "--n-sv 3 --slow-svs 2); default 0")
     p.add_argument("--out", type=Path, default=None,
                    help="write OUT.md (the table), OUT.csv (the policy's cells) and OUT_random.csv")
     p.add_argument("--title", default="")
@@ -275,6 +279,8 @@ def evaluate_main(argv=None) -> int:
         return fail(prog, f"--episodes must be in 1..1000, got {args.episodes}")
     if args.workers < 1:
         return fail(prog, f"--workers must be >= 1, got {args.workers}")
+    if args.slow_svs < 0:
+        return fail(prog, f"--slow-svs must be >= 0, got {args.slow_svs}")
     tasks = [TASKS.index(t) for t in args.tasks]
     try:
         check_cells(args.map, args.n_sv, tasks)
@@ -298,7 +304,8 @@ def evaluate_main(argv=None) -> int:
         results = evaluate(args.policy, args.map, args.n_sv, tasks, args.episodes, args.workers, args.mpc,
                            progress, env_config=args.env_config, random_row=not args.no_random_row,
                            seed_set=args.seed_set, mpc_config=args.mpc_config,
-                           action_selection="sample" if args.sample else "argmax", sample_seed=args.sample_seed)
+                           action_selection="sample" if args.sample else "argmax", sample_seed=args.sample_seed,
+                           slow_svs=args.slow_svs)
     except (CheckpointError, EvaluationError, ConfigError) as exc:
         return fail(prog, exc)
     finally:

@@ -164,13 +164,14 @@ def _materialise(spec: tuple, env_config) -> tuple[str, Any]:
 
 
 def _run_cell(job: tuple) -> tuple:
-    spec, env_config, map_id, task, n_sv, episodes, mpc_solver, seed_set, mpc_config = job
+    spec, env_config, map_id, task, n_sv, episodes, mpc_solver, seed_set, mpc_config, slow_svs = job
     from .env import IntersectionEnv
 
     label, policy = _materialise(spec, env_config)
     actor = as_actor(policy)
     begin = getattr(policy, "begin_episode", None)
-    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver, mpc_config=mpc_config)
+    env = IntersectionEnv(map_id=map_id, config=env_config, mpc_solver=mpc_solver, mpc_config=mpc_config,
+                          slow_svs=slow_svs)
     nvec = tuple(int(n) for n in env.cfg.nvec)
     counts: Counter = Counter()
     returns = []
@@ -337,7 +338,7 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
              mpc_solver: str = "fast", progress: Callable | None = None, *,
              env_config: Any = None, random_row: bool = True, random_seed: int = 0,
              seed_set: str = "test", mpc_config: Any = None, action_selection: str = "argmax",
-             sample_seed: int = 0) -> list[CellResult]:
+             sample_seed: int = 0, slow_svs: int = 0) -> list[CellResult]:
     """Run the protocol; see the module docstring.
 
     ``action_selection`` says how a policy file acts: ``argmax`` per head (deterministic), or
@@ -351,7 +352,9 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
     every cell, so that a policy is evaluated with the controller it was trained with; by default
     that is the one its file records (``mpc_config`` in its run metadata), else the packaged one.
     Objects that cannot be pickled run in this process whatever ``workers`` says (a warning).
-    ``progress(cell)`` is called as each cell finishes. Returns the policy's cells, then the
+    ``slow_svs`` > 0 slows ``draw_n_slow(scenario seed, N_sv, slow_svs)`` SVs per episode (the
+    overtaking protocol of paper §IV-C on ``three_lane_straight``; the same draw as training's
+    ``--slow-svs``, so a seed gives the same scenario in both). ``progress(cell)`` is called as each cell finishes. Returns the policy's cells, then the
     random ones, each sorted by (task, N_sv).
     """
     n_svs, tasks = [int(n) for n in n_svs], [int(t) for t in tasks]
@@ -361,6 +364,8 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
         raise ValueError(f"episodes must be in 1..1000 per cell, got {episodes}")
     if int(workers) < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if int(slow_svs) < 0:
+        raise ValueError(f"slow_svs must be >= 0, got {slow_svs}")
     check_cells(map_id, n_svs, tasks)
     spec, loaded, cfg = resolve_policy(policy, env_config)
     from bimacppo_planner.policy import ACTION_SELECTIONS
@@ -373,23 +378,23 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
     cells = [(t, n) for t in tasks for n in n_svs]
     mpc_config = resolve_mpc_config(loaded, mpc_config)   # a bad file fails here, once, not in every worker
     mpc_key = None if mpc_config is None else mpc_config.to_dict()
-    jobs = [(spec, cfg, map_id, t, n, int(episodes), mpc_solver, seed_set, mpc_config) for t, n in cells]
+    jobs = [(spec, cfg, map_id, t, n, int(episodes), mpc_solver, seed_set, mpc_config, int(slow_svs)) for t, n in cells]
     results: list[CellResult] = []
     if random_row:
         for t, n in cells:
             key = json.dumps([map_id, cfg.to_dict(), t, n, int(episodes), mpc_solver, int(random_seed), seed_set,
-                              mpc_key])
+                              mpc_key, int(slow_svs)])
             if key in _RANDOM_CACHE:
                 results.append(_RANDOM_CACHE[key])
             else:
                 jobs.append(((RANDOM, int(random_seed)), cfg, map_id, t, n, int(episodes), mpc_solver, seed_set,
-                             mpc_config))
+                             mpc_config, int(slow_svs)))
 
     def collect(r: tuple) -> None:
         cell = CellResult(r[1], r[2], r[3], r[4], r[0], r[5], r[6], r[7])
         if cell.policy == RANDOM:
             _RANDOM_CACHE[json.dumps([map_id, cfg.to_dict(), cell.task, cell.n_sv, int(episodes), mpc_solver,
-                                      int(random_seed), seed_set, mpc_key])] = cell
+                                      int(random_seed), seed_set, mpc_key, int(slow_svs)])] = cell
         results.append(cell)
         if progress:
             progress(cell)

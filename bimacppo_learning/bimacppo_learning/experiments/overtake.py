@@ -120,31 +120,19 @@ def finetune(cfg: ExperimentConfig, ckpt: Path, env_cfg, out: Path) -> None:
 
 
 def overtake_test(cfg: ExperimentConfig, policy_path: Path) -> dict:
-    """``test_episodes`` episodes with ``test_n_sv`` SVs, seeds from evaluate.eval_seed, the
-    number of slow SVs drawn per seed (draw_n_slow)."""
-    from tqdm.auto import tqdm
-
-    from bimacppo_planner.agent import env_config_of, load_policy
-    from ..evaluate import eval_seed
+    """``test_episodes`` episodes with ``test_n_sv`` SVs on the test seeds, the number of slow
+    SVs drawn per seed (draw_n_slow): ``bimacppo-evaluate --map <map> --tasks <its task>
+    --n-sv <test_n_sv> --slow-svs <n_slow_max>``, the same protocol."""
+    from bimacppo_sim import load_map
+    from ..evaluate import eval_seed, evaluate
 
     o = cfg.overtake
-    policy = load_policy(policy_path)
-    env = make_overtake_env(o.map, env_config_of(policy), cfg.train.mpc, o.n_slow_max)()
-    task = env.tasks[0]
-    j = TASKS.index(task)
-    counts: Counter = Counter()
-    slow: Counter = Counter()
-    for k in tqdm(range(o.test_episodes), unit="ep", desc="overtaking tests", disable=None):
-        seed = eval_seed(j, o.test_n_sv, k)
-        n_slow = draw_n_slow(seed, o.test_n_sv, o.n_slow_max)
-        slow[n_slow] += 1
-        obs, _ = env.reset(options={"n_sv": o.test_n_sv, "task": task, "scenario_seed": seed, "n_slow": n_slow})
-        done = False
-        while not done:
-            obs, _, term, trunc, info = env.step(policy.act(obs, deterministic=True))
-            done = term or trunc
-        counts[info["outcome"]] += 1
-    env.close()
+    road = load_map(o.map)
+    j = next(i for i, t in enumerate(TASKS) if t in road.turns)   # the road's first task, as the env picks it
+    [cell] = evaluate(policy_path, o.map, (o.test_n_sv,), (j,), o.test_episodes, workers=1,
+                      mpc_solver=cfg.train.mpc, random_row=False, seed_set="test", slow_svs=o.n_slow_max)
+    slow = Counter(draw_n_slow(eval_seed(j, o.test_n_sv, k), o.test_n_sv, o.n_slow_max)
+                   for k in range(o.test_episodes))
     n = o.test_episodes
     return {"episodes": n, "n_sv": o.test_n_sv, "n_slow_counts": {str(k): v for k, v in sorted(slow.items())},
-            **{f"{x}_pct": 100.0 * counts[x] / n for x in OUTCOMES}}
+            **{f"{x}_pct": 100.0 * cell.counts.get(x, 0) / n for x in OUTCOMES}}
