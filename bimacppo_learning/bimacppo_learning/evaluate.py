@@ -354,8 +354,9 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
     Objects that cannot be pickled run in this process whatever ``workers`` says (a warning).
     ``slow_svs`` > 0 slows ``draw_n_slow(scenario seed, N_sv, slow_svs)`` SVs per episode (the
     overtaking protocol of paper §IV-C on ``three_lane_straight``; the same draw as training's
-    ``--slow-svs``, so a seed gives the same scenario in both). ``progress(cell)`` is called as each cell finishes. Returns the policy's cells, then the
-    random ones, each sorted by (task, N_sv).
+    ``--slow-svs``, so a seed gives the same scenario in both). ``progress(cell)`` is called as
+    each cell finishes. Returns the policy's cells, then the random ones, each sorted by
+    (task, N_sv).
     """
     n_svs, tasks = [int(n) for n in n_svs], [int(t) for t in tasks]
     if seed_set not in SEED_SETS:

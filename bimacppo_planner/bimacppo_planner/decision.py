@@ -177,21 +177,18 @@ class WaypointTracker:
         bounds the whole path between the EV and the waypoint. WP0 is always allowed: there is
         no route point between the EV and it."""
         r, m = self.route, len(self.route) - 1
+
+        def off_chord(i: int, dx: float, dy: float, len2: float) -> float:
+            # distance of route point i from the segment EV -> (x + dx, y + dy)
+            px, py = r[i, 0] - x, r[i, 1] - y
+            t = min(max((px * dx + py * dy) / len2, 0.0), 1.0)
+            return math.hypot(px - t * dx, py - t * dy)
+
         for kk in range(k, 0, -1):
             j = min(self.idx + kk, m)
             dx, dy = r[j, 0] - x, r[j, 1] - y
-            length = math.hypot(dx, dy)
-            if length < 1e-9:
-                return kk
-            ok = True
-            for i in range(self.idx, j):
-                # distance of route point i from the segment EV -> waypoint
-                px, py = r[i, 0] - x, r[i, 1] - y
-                t = min(max((px * dx + py * dy) / (length * length), 0.0), 1.0)
-                if math.hypot(px - t * dx, py - t * dy) > tol:
-                    ok = False
-                    break
-            if ok:
+            len2 = dx * dx + dy * dy
+            if len2 < 1e-18 or all(off_chord(i, dx, dy, len2) <= tol for i in range(self.idx, j)):
                 return kk
         return 0
 
