@@ -208,12 +208,29 @@ def test_cli_without_a_policy_evaluates_the_shipped_one_beside_the_random_row(ca
     assert "| right |" in out and "random" not in out
 
 
+def test_median_actions_are_the_median_policy_and_named_in_the_table(capsys):
+    from bimacppo_planner.policy import MedianPolicy
+
+    path = shipped_policy_path()
+    cell = {**CELL, "n_svs": [3], "episodes": 2}
+    cfg = env_config_of(load_policy(path))
+    by_file = ev.evaluate(path, workers=1, random_row=False, action_selection="median", **cell)
+    by_hand = ev.evaluate(MedianPolicy(load_policy(path)), workers=1, random_row=False, env_config=cfg, **cell)
+    assert _outcomes(by_file) == _outcomes(by_hand)
+    with pytest.raises(ev.EvaluationError, match="needs a policy file"):
+        ev.evaluate(load_policy(path), workers=1, random_row=False, action_selection="median", **cell)
+    assert evaluate_main(["--action", "median", "--episodes", "1", "--n-sv", "1", "--tasks", "straight",
+                          "--workers", "1", "--no-random-row"]) == 0
+    assert "median actions" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("argv, says", [
     (["--n-sv", "7"], "N_sv=7 impossible on map 'dual_lane_4way' (0..3)"),
     (["--map", "three_lane_straight"], "has no task 'left'"),
     (["--episodes", "0"], "--episodes must be in 1..1000"),
     (["--workers", "0"], "--workers must be >= 1"),
     (["--slow-svs", "-1"], "--slow-svs must be >= 0"),
+    (["--sample", "--action", "median"], "--sample contradicts --action median"),
     (["/nonexistent/policy.pt"], "/nonexistent/policy.pt: no such file"),
 ])
 def test_cli_refusals_are_one_error_line(argv, says, capsys):

@@ -14,6 +14,7 @@ CASES = [
     ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=torch.serialization:load"],
      "is not a planner class"),
     ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=nonesuch"], "entry points bimacppo.planners"),
+    ("bimacppo_planner.ros.planner_node", ["-p", "action_selection:=sample"], "action_selection must be empty or one of"),
 ]
 
 
@@ -35,6 +36,31 @@ def test_the_default_planner_is_a_registered_planner_class():
     from bimacppo_planner.ros.planner_node import DEFAULT_CLASS, load_class
 
     assert load_class("default") is HighLevelPlanner is load_class(DEFAULT_CLASS)
+
+
+class ArgmaxOnlyPlanner:
+    """A planner class from elsewhere whose ``load`` knows nothing of action_selection."""
+
+    @classmethod
+    def load(cls, policy_path, map_id):
+        return cls()
+
+    def reset(self, ego, goal):
+        pass
+
+    def step(self, ego, svs):
+        pass
+
+
+def test_a_median_planner_is_built_and_a_class_that_cannot_take_it_is_refused():
+    from bimacppo_planner.ros.planner_node import make_planner
+    from bimacppo_ros_common.params import ConfigError
+
+    assert make_planner("default", "", "dual_lane_4way", "median").action_selection == "median"
+    assert make_planner("default", "", "dual_lane_4way").action_selection == "argmax"
+    assert isinstance(make_planner(f"{__name__}:ArgmaxOnlyPlanner", "", "x"), ArgmaxOnlyPlanner)
+    with pytest.raises(ConfigError, match="does not take action_selection"):
+        make_planner(f"{__name__}:ArgmaxOnlyPlanner", "", "x", "median")
 
 
 @pytest.mark.ros

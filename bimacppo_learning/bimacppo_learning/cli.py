@@ -253,9 +253,12 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed-set", choices=("validation", "test"), default="test",
                    help="scenario seeds: validation (for choosing configs, checkpoints, variants) or test "
                         "(reporting only); disjoint sets, default test")
-    p.add_argument("--sample", action="store_true",
-                   help="run the policy as trained, sampling each head's action (seeded per episode by "
-                        "--sample-seed and the scenario seed) instead of the argmax per head")
+    p.add_argument("--action", choices=("argmax", "median", "sample"), default=None,
+                   help="how a policy file picks each head's action (default: the way the file records, else "
+                        "argmax): argmax, median (the head's "
+                        "weighted median over its ordered values, deterministic) or sample (the policy as "
+                        "trained, seeded per episode by --sample-seed and the scenario seed)")
+    p.add_argument("--sample", action="store_true", help="the same as --action sample")
     p.add_argument("--sample-seed", type=int, default=0, help="seed of --sample's action draws")
     p.add_argument("--slow-svs", type=int, default=0, metavar="N",
                    help="slow down 0..N SVs per episode, drawn from the scenario seed as in training's --slow-svs "
@@ -272,7 +275,8 @@ def evaluate_main(argv=None) -> int:
     from bimacppo_common.conventions import TASKS
 
     from .checkpoint import CheckpointError
-    from .evaluate import EvaluationError, check_cells, evaluate, resolve_policy, to_markdown, write_outputs
+    from .evaluate import (EvaluationError, check_cells, default_selection, evaluate, resolve_policy, to_markdown,
+                           write_outputs)
 
     prog = "bimacppo-evaluate"
     if not 1 <= args.episodes <= 1000:
@@ -281,13 +285,16 @@ def evaluate_main(argv=None) -> int:
         return fail(prog, f"--workers must be >= 1, got {args.workers}")
     if args.slow_svs < 0:
         return fail(prog, f"--slow-svs must be >= 0, got {args.slow_svs}")
+    if args.sample and args.action not in (None, "sample"):
+        return fail(prog, f"--sample contradicts --action {args.action}")
+    selection = "sample" if args.sample else args.action
     tasks = [TASKS.index(t) for t in args.tasks]
     try:
         check_cells(args.map, args.n_sv, tasks)
     except ValueError as exc:
         return fail(prog, f"{exc}: choose --n-sv / --tasks within it")
     try:   # fail fast, in this process, with a clear message
-        resolve_policy(args.policy, args.env_config)
+        spec, loaded, _ = resolve_policy(args.policy, args.env_config)
     except (CheckpointError, EvaluationError, ConfigError) as exc:
         return fail(prog, exc)
     from tqdm.auto import tqdm
@@ -304,15 +311,17 @@ def evaluate_main(argv=None) -> int:
         results = evaluate(args.policy, args.map, args.n_sv, tasks, args.episodes, args.workers, args.mpc,
                            progress, env_config=args.env_config, random_row=not args.no_random_row,
                            seed_set=args.seed_set, mpc_config=args.mpc_config,
-                           action_selection="sample" if args.sample else "argmax", sample_seed=args.sample_seed,
+                           action_selection=selection, sample_seed=args.sample_seed,
                            slow_svs=args.slow_svs)
     except (CheckpointError, EvaluationError, ConfigError) as exc:
         return fail(prog, exc)
     finally:
         bar.close()
     title = args.title
-    if args.sample:
-        title = (f"{title}: " if title else "") + f"actions sampled (seed {args.sample_seed})"
+    selection = selection or default_selection(spec, loaded)
+    if selection != "argmax":
+        what = f"actions sampled (seed {args.sample_seed})" if selection == "sample" else "median actions"
+        title = (f"{title}: " if title else "") + what
     print(to_markdown(results, title))
     if args.out:
         md, cs = write_outputs(results, args.out, title)

@@ -158,6 +158,11 @@ def _materialise(spec: tuple, env_config) -> tuple[str, Any]:
 
         path, seed = value
         return POLICY, SampledPolicy(load_policy(path), seed)
+    if kind == "median":
+        from bimacppo_planner.agent import load_policy
+        from bimacppo_planner.policy import MedianPolicy
+
+        return POLICY, MedianPolicy(load_policy(value))
     if kind == RANDOM:
         return RANDOM, RandomPolicy(env_config.nvec, value)
     return POLICY, value
@@ -267,6 +272,12 @@ def _run_parallel(jobs: list[tuple], workers: int, on_result: Callable[[tuple], 
 
 
 # ------------------------------------------------------------------ the protocol
+def default_selection(spec: tuple, loaded: Any) -> str:
+    """How ``evaluate`` runs a policy given no ``action_selection``: a file the way it records
+    (``Policy.selection``), an object by its own act/predict (argmax where it has a choice)."""
+    return getattr(loaded, "selection", "argmax") if spec[0] == "path" else "argmax"
+
+
 def resolve_policy(policy: Any, env_config=None) -> tuple[tuple, Any, Any]:
     """(worker spec, loaded policy, env config) for what ``evaluate`` was given; a file is
     loaded here (CheckpointError, in this process) and its stored env config is the default."""
@@ -337,12 +348,14 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
              tasks: Iterable[int] = (0, 1, 2), episodes: int = 100, workers: int = 2,
              mpc_solver: str = "fast", progress: Callable | None = None, *,
              env_config: Any = None, random_row: bool = True, random_seed: int = 0,
-             seed_set: str = "test", mpc_config: Any = None, action_selection: str = "argmax",
+             seed_set: str = "test", mpc_config: Any = None, action_selection: str | None = None,
              sample_seed: int = 0, slow_svs: int = 0) -> list[CellResult]:
     """Run the protocol; see the module docstring.
 
-    ``action_selection`` says how a policy file acts: ``argmax`` per head (deterministic), or
-    ``sample``: the trained stochastic policy (``bimacppo_planner.policy.SampledPolicy``), its
+    ``action_selection`` says how a policy file acts (None: the way the file records,
+    ``Policy.selection``, else argmax; an object acts as it does): ``argmax`` per head (deterministic),
+    ``median``: each head's weighted median over its ordered values (deterministic,
+    ``bimacppo_planner.policy.head_median``), or ``sample``: the trained stochastic policy (``bimacppo_planner.policy.SampledPolicy``), its
     generator seeded per episode from ``(sample_seed, scenario seed)``.
 
     ``env_config`` (EnvConfig, YAML path or dict) replaces the policy's own (a policy file's
@@ -370,12 +383,18 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
     check_cells(map_id, n_svs, tasks)
     spec, loaded, cfg = resolve_policy(policy, env_config)
     from bimacppo_planner.policy import ACTION_SELECTIONS
+    if action_selection is None:
+        action_selection = default_selection(spec, loaded)
     if action_selection not in ACTION_SELECTIONS:
         raise ValueError(f"action_selection must be one of {ACTION_SELECTIONS}, got {action_selection!r}")
     if action_selection == "sample":
         if spec[0] != "path":
             raise EvaluationError("action_selection 'sample' needs a policy file; a policy object samples itself")
         spec = ("sampled", (spec[1], int(sample_seed)))
+    elif action_selection == "median":
+        if spec[0] != "path":
+            raise EvaluationError("action_selection 'median' needs a policy file")
+        spec = ("median", spec[1])
     cells = [(t, n) for t in tasks for n in n_svs]
     mpc_config = resolve_mpc_config(loaded, mpc_config)   # a bad file fails here, once, not in every worker
     mpc_key = None if mpc_config is None else mpc_config.to_dict()

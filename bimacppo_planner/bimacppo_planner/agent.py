@@ -15,7 +15,7 @@ import numpy as np
 from bimacppo_sim import RoadMap, WorldConfig, load_map
 from bimacppo_sim.world import reference_route, resample_route, route_end
 
-from .policy import CheckpointError, Policy
+from .policy import DEPLOYED_SELECTIONS, CheckpointError, Policy
 from .decision import EnvConfig, WaypointTracker, decode_action, observe
 
 SHIPPED_POLICY = "policies/bimacppo_dual_lane.pt"
@@ -130,8 +130,20 @@ def _route_from_junction(road: RoadMap, start_xy, start_psi, goal, cfg):
 class HighLevelPlanner:
     """Policy → x_IMR, one decision per call; see the module docstring."""
 
-    def __init__(self, policy: Policy, road: RoadMap, config: EnvConfig | None = None):
+    #: how the deployed planner picks each head's action: deterministic choices only, so that the
+    #: same inputs give the same reference (``bimacppo_planner.policy.head_median`` says why the
+    #: median exists beside the argmax)
+    SELECTIONS = DEPLOYED_SELECTIONS
+
+    def __init__(self, policy: Policy, road: RoadMap, config: EnvConfig | None = None,
+                 action_selection: str | None = None):
+        """``action_selection`` None (or "") runs the policy the way its file says (``Policy.selection``)."""
+        action_selection = action_selection or policy.selection
+        if action_selection not in self.SELECTIONS:
+            raise ValueError(f"action_selection must be one of {self.SELECTIONS}, got {action_selection!r}")
         self.policy = policy
+        self.action_selection = action_selection
+        self._act = policy.act_median if action_selection == "median" else policy.act
         self.road = road
         self.cfg = config or env_config_of(policy)
         if policy.obs_dim != self.cfg.obs_dim or tuple(policy.nvec) != self.cfg.nvec:
@@ -142,8 +154,8 @@ class HighLevelPlanner:
 
     @classmethod
     def load(cls, policy_path: str | Path | None = None, map_id: str = "dual_lane_4way",
-             config: EnvConfig | None = None) -> "HighLevelPlanner":
-        return cls(load_policy(policy_path), load_map(map_id), config)
+             config: EnvConfig | None = None, action_selection: str | None = None) -> "HighLevelPlanner":
+        return cls(load_policy(policy_path), load_map(map_id), config, action_selection)
 
     def reset(self, ego: np.ndarray, goal: np.ndarray, route: np.ndarray | None = None) -> None:
         """New episode: plan the A* route from the EV's pose to the goal (or take ``route``)."""
@@ -168,7 +180,7 @@ class HighLevelPlanner:
             raise ValueError("SV states contain NaN or inf")
         obs = observe(self.cfg.observation, ego, self.goal, svs)
         self.tracker.update(ego[0], ego[1])
-        action = self.policy.act(obs, deterministic=True)
+        action = self._act(obs)
         x_imr, changed = decode_action(action, self.tracker, self.cfg.action, self.road.lateral_point, ego)
         return x_imr, {"action": action, "obs": obs, "lane_change": changed,
                        "candidates": self.tracker.candidates()}

@@ -20,6 +20,10 @@ SVs and goal are moved into the map's own frame before the policy sees them and 
 moved back (``geometry.MapFrame``), so a source whose junction is elsewhere needs only the
 matching map file (``map_id``: a map id or a YAML path).
 
+``action_selection`` (argmax or median; empty, the default: what the policy file records, else
+argmax) is how the policy turns each head's distribution into an action; both are deterministic (``bimacppo_planner.policy.head_median``
+says when they differ and why a waiting policy needs the median).
+
 Faults (docs/faults.md): callbacks are ``runtime.guarded``; which input is answered,
 repeated, kept or dropped is the tick protocol's verdict (``tick_protocol.TickProtocol``,
 its table in docs/interfaces.md: stale and far-future stamps, goals and results far ahead,
@@ -34,8 +38,10 @@ import inspect
 from collections import OrderedDict
 
 import numpy as np
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
+from bimacppo_planner.agent import HighLevelPlanner
 from bimacppo_planner.decision import EnvConfig, step_reward
 from bimacppo_sim.geometry import MapFrame
 from bimacppo_interfaces import contract as I
@@ -81,8 +87,11 @@ def load_class(spec: str):
     return obj
 
 
-def make_planner(spec: str, policy_path: str, map_id: str):
+def make_planner(spec: str, policy_path: str, map_id: str, action_selection: str = ""):
     """``cls.load(policy_path, map_id)``; an empty path means the policy shipped in the package.
+    A non-empty ``action_selection`` is passed on (``action_selection=``; empty: the policy's
+    own); a class whose ``load`` does not take it is refused for anything but the argmax rather
+    than silently run by argmax.
 
     A missing or unusable policy file becomes a ValueError naming the file, so the node
     exits with one ``error:`` line (runtime.run_single) instead of a traceback.
@@ -91,8 +100,16 @@ def make_planner(spec: str, policy_path: str, map_id: str):
     from bimacppo_planner.policy import CheckpointError
     if policy_path:
         param_file(policy_path, "policy_path", "planner")
+    kw = {}
+    if action_selection:
+        params = inspect.signature(cls.load).parameters
+        if "action_selection" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+            kw["action_selection"] = action_selection
+        elif action_selection != "argmax":
+            raise ConfigError(f"planner: planner_class {spec!r} does not take action_selection "
+                              f"(asked for {action_selection!r})")
     try:
-        return cls.load(policy_path or None, map_id)
+        return cls.load(policy_path or None, map_id, **kw)
     except (CheckpointError, ValueError, KeyError, TypeError, RuntimeError, OSError) as exc:
         # RuntimeError/KeyError/TypeError: torch refusing a state dict of the wrong shape
         # or layout; OSError: unreadable; ValueError: a bad map_id or config
@@ -129,7 +146,14 @@ class PlannerNode(Node):
         self.declare_parameter("cache_size", 64)
         self.declare_parameter("publish_markers", True)
         self.declare_parameter("max_stamp_jump_s", 30.0)
+        self.declare_parameter("action_selection", "", ParameterDescriptor(
+            description="how the policy picks each head's action: argmax, or median (the head's "
+                        "weighted median over its ordered values); empty: the way the policy file says",
+            additional_constraints=f"empty or one of {', '.join(HighLevelPlanner.SELECTIONS)}"))
         g = lambda n: self.get_parameter(n).value  # noqa: E731
+        if g("action_selection") not in ("", *HighLevelPlanner.SELECTIONS):
+            raise ConfigError(f"planner: parameter action_selection must be empty or one of "
+                              f"{HighLevelPlanner.SELECTIONS}, got {g('action_selection')!r}")
         cache_size = int(param_range(g("cache_size"), "cache_size", "planner", lo=1, hi=100_000))
         jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", "planner",
                                         lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
@@ -137,7 +161,7 @@ class PlannerNode(Node):
         self.protocol = TickProtocol(cache_size, jump_ns, log=self._log, on_restart=self._clear_tick_caches)
         self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
         if planner is None:
-            planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"))
+            planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"), g("action_selection"))
         self.hp = planner
         self.road = getattr(self.hp, "road", None)
         self.frame = getattr(self.road, "frame", None) or MapFrame()
