@@ -373,3 +373,29 @@ def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_p
     packaged = evaluate(pol, mpc_config=DEFAULT_PATH, **kw)[0]
     assert (default.comfort.ticks, default.comfort.jerk_sq) == (explicit.comfort.ticks, explicit.comfort.jerk_sq)
     assert (default.comfort.ticks, default.comfort.jerk_sq) != (packaged.comfort.ticks, packaged.comfort.jerk_sq)
+
+
+def test_train_world_config_sets_the_training_episodes_only_and_is_recorded(trained, tmp_path, capsys):
+    from bimacppo_learning.cli import make_env
+    from bimacppo_planner.decision import EnvConfig
+    from bimacppo_planner.policy import Policy
+    from bimacppo_sim import WorldConfig
+
+    _, cfg, _ = trained
+    world = tmp_path / "world.yaml"
+    world.write_text("ev_speed_min: 0.0\nev_speed_max: 0.5\n")
+    out = tmp_path / "standing"
+    assert train_main(["--episodes", "2", "--seed", "3", "--run-dir", str(out), "--ppo-config", str(cfg),
+                       "--world-config", str(world), "--no-progress"]) == 0
+    assert json.loads((out / "run.json").read_text())["world_config"]["ev_speed_max"] == 0.5
+    assert Policy.load(out / "policy.pt").meta["world_config"]["ev_speed_min"] == 0.0
+    starts = []
+    for wc in (WorldConfig.load(world), None):
+        env = make_env("dual_lane_4way", EnvConfig.load(), "fast", world_config=wc)()
+        env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": 4})
+        starts.append(float(env.world.ego[2]))
+    assert starts[0] <= 0.5 and starts[1] >= 3.0          # the file's speeds, else the packaged 3-6 m/s
+    world.write_text("ev_sped_min: 0.0\n")
+    assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "bad"), "--world-config", str(world)]) == 2
+    assert "ev_sped_min" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert not (tmp_path / "bad").exists()

@@ -19,15 +19,17 @@ CURRICULA = ("bimab", "fixed", "random", "manual", "rd")
 MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
 
 
-def make_env(map_id: str, env_config: EnvConfig, mpc_solver: str, slow_svs: int = 0, mpc_config=None):
+def make_env(map_id: str, env_config: EnvConfig, mpc_solver: str, slow_svs: int = 0, mpc_config=None,
+             world_config=None):
     """The training env's picklable factory (one env when called, ``make_batch(n)`` for the
     batched vector env). Every curriculum draws all three tasks (its arms); a map with fewer (the
     straight road has only "straight") folds them onto its own, and ``slow_svs`` > 0 slows up to
     that many SVs per episode (paper §IV-C overtaking): both rules live in ``batch.py``.
-    ``mpc_config`` (an MPCConfig; None: the packaged mpc.yaml) is the NMPC under the planner."""
+    ``mpc_config`` (an MPCConfig; None: the packaged mpc.yaml) is the NMPC under the planner,
+    ``world_config`` (a WorldConfig; None: the packaged world.yaml) the world of the episodes."""
     from .vec_env import EnvFactory
 
-    return EnvFactory(map_id, env_config, mpc_solver, slow_svs, mpc_config=mpc_config)
+    return EnvFactory(map_id, env_config, mpc_solver, slow_svs, mpc_config=mpc_config, world_config=world_config)
 
 
 def _train_parser() -> argparse.ArgumentParser:
@@ -58,6 +60,10 @@ def _train_parser() -> argparse.ArgumentParser:
                    help="YAML overlaying bimacppo_mpc/config/mpc.yaml (lists only what it changes, e.g. "
                         "mpc_unbounded.yaml); recorded in the checkpoints and policy.pt, and --resume / "
                         "--init-policy need the one the checkpoint records; default: the packaged one")
+    p.add_argument("--world-config", type=Path, default=None,
+                   help="YAML overlaying bimacppo_sim/config/world.yaml for the training episodes only (e.g. "
+                        "where and how fast the EV starts); recorded in run.json and policy.pt; evaluation "
+                        "always runs the packaged world, so the test scenarios stay the same; default: packaged")
     p.add_argument("--slow-svs", type=int, default=0, metavar="N",
                    help="slow down 0..N SVs per episode (drawn from the reset seed), for overtaking "
                         "fine-tunes on three_lane_straight (paper: 2); default 0")
@@ -157,6 +163,7 @@ def train_main(argv=None) -> int:
     args = _train_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from bimacppo_mpc import MPCConfig
+    from bimacppo_sim import WorldConfig
 
     from .checkpoint import CheckpointError
     from .ppo_config import load_config
@@ -170,6 +177,7 @@ def train_main(argv=None) -> int:
     try:
         env_cfg = EnvConfig.load(args.env_config)
         mpc_cfg = MPCConfig.load(args.mpc_config)
+        world_cfg = None if args.world_config is None else WorldConfig.load(args.world_config)
         train_over = {"seed": args.seed}
         if args.num_envs is not None:
             train_over["num_envs"] = args.num_envs
@@ -191,8 +199,9 @@ def train_main(argv=None) -> int:
         "curriculum": args.curriculum, "episodes": args.episodes, "seed": args.seed, "map": args.map,
         "mpc": args.mpc, "slow_svs": args.slow_svs, "env_config": env_cfg.to_dict(),
         "mpc_config": mpc_cfg.to_dict(), "argv": sys.argv[1:] if argv is None else list(argv),
+        **({} if world_cfg is None else {"world_config": world_config_dict(world_cfg)}),
     }, indent=2))
-    env_fn = make_env(args.map, env_cfg, args.mpc, args.slow_svs, mpc_config=mpc_cfg)
+    env_fn = make_env(args.map, env_cfg, args.mpc, args.slow_svs, mpc_config=mpc_cfg, world_config=world_cfg)
     from bimacppo_sim import load_map
 
     tasks = sorted(load_map(args.map).turns)
@@ -200,7 +209,8 @@ def train_main(argv=None) -> int:
         print(f"bimacppo-train: map {args.map!r} has only the task(s) {tasks}: the curriculum's task "
               "arms all run as that task (its arm statistics are then not meaningful)", file=sys.stderr)
     trainer = Trainer(env_fn, sched, run_dir, pcfg, tcfg, agent=agent,
-                      run_meta=run_meta(env_cfg, args.curriculum, args.map, args.seed, args.mpc, mpc_cfg))
+                      run_meta=run_meta(env_cfg, args.curriculum, args.map, args.seed, args.mpc, mpc_cfg,
+                                        world_cfg))
     try:
         res = trainer.train(args.episodes, resume=args.resume)
     except CheckpointError as exc:
@@ -215,17 +225,28 @@ def train_main(argv=None) -> int:
     return 0
 
 
-def run_meta(env_cfg: EnvConfig, curriculum: str, map_id: str, seed: int, mpc: str, mpc_cfg=None) -> dict:
+def world_config_dict(world_cfg) -> dict:
+    from bimacppo_common import config as common_config
+
+    return common_config.to_dict(world_cfg)
+
+
+def run_meta(env_cfg: EnvConfig, curriculum: str, map_id: str, seed: int, mpc: str, mpc_cfg=None,
+             world_cfg=None) -> dict:
     """How a run was trained, as stored in its checkpoints and exported policy (Trainer.run_meta):
     deployment (planner node, evaluation) rebuilds the same observation and decoding from it, and
     evaluation runs the NMPC it was trained with (``mpc_cfg``; None: the packaged mpc.yaml, what
-    the env then runs)."""
+    the env then runs). A training world other than the packaged one (``world_cfg``) is recorded
+    for the record only: evaluation never uses it, so every policy meets the same scenarios."""
     if mpc_cfg is None:
         from bimacppo_mpc import MPCConfig
 
         mpc_cfg = MPCConfig.load()
-    return {"env_config": env_cfg.to_dict(), "mpc_config": mpc_cfg.to_dict(), "curriculum": curriculum,
+    meta = {"env_config": env_cfg.to_dict(), "mpc_config": mpc_cfg.to_dict(), "curriculum": curriculum,
             "map": map_id, "seed": seed, "mpc": mpc}
+    if world_cfg is not None:
+        meta["world_config"] = world_config_dict(world_cfg)
+    return meta
 
 
 def _eval_parser() -> argparse.ArgumentParser:

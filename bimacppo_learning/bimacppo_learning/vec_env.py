@@ -196,14 +196,16 @@ class EnvFactory:
     slow_svs: int = 0
     workers: int = 1
     mpc_config: MPCConfig | None = None      # None: the packaged mpc.yaml
+    world_config: Any = None                 # a WorldConfig; None: the packaged world.yaml
 
     def __call__(self):
         from .env import IntersectionEnv
 
         return IntersectionEnv(map_id=self.map_id, config=self.env_config, mpc_solver=self.mpc_solver,
-                               slow_svs=self.slow_svs, mpc_config=self.mpc_config)
+                               slow_svs=self.slow_svs, mpc_config=self.mpc_config, world_config=self.world_config)
 
     def make_batch(self, num_envs: int, workers: int | None = None) -> BatchedVectorEnv:
         return BatchedVectorEnv(num_envs, workers=self.workers if workers is None else workers,
                                 map_id=self.map_id, config=self.env_config, mpc_solver=self.mpc_solver,
-                                slow_svs=self.slow_svs, mpc_config=self.mpc_config)
+                                slow_svs=self.slow_svs, mpc_config=self.mpc_config,
+                                world_config=self.world_config)
