@@ -399,3 +399,14 @@ def test_train_world_config_sets_the_training_episodes_only_and_is_recorded(trai
     assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "bad"), "--world-config", str(world)]) == 2
     assert "ev_sped_min" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
     assert not (tmp_path / "bad").exists()
+
+
+def test_the_standing_starts_study_overlay_changes_only_the_start_speed():
+    from conftest import REPO
+    from bimacppo_common import config as common_config
+    from bimacppo_sim import WorldConfig
+
+    packaged = common_config.to_dict(WorldConfig.load())
+    standing = common_config.to_dict(WorldConfig.load(REPO / "studies" / "config" / "world_standing_starts.yaml"))
+    assert {k for k in packaged if packaged[k] != standing[k]} == {"ev_speed_min"}
+    assert standing["ev_speed_min"] == 0.0 < packaged["ev_speed_min"]
