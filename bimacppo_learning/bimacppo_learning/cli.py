@@ -274,7 +274,9 @@ def _eval_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed-set", choices=("validation", "test"), default="test",
                    help="scenario seeds: validation (for choosing configs, checkpoints, variants) or test "
                         "(reporting only); disjoint sets, default test")
-    p.add_argument("--action", choices=("argmax", "median", "sample"), default=None,
+    from bimacppo_planner.policy import ACTION_SELECTIONS
+
+    p.add_argument("--action", choices=ACTION_SELECTIONS, default=None,
                    help="how a policy file picks each head's action (default: the way the file records, else "
                         "argmax): argmax, median (the head's "
                         "weighted median over its ordered values, deterministic) or sample (the policy as "

@@ -152,17 +152,12 @@ def _materialise(spec: tuple, env_config) -> tuple[str, Any]:
         from bimacppo_planner.agent import load_policy
 
         return POLICY, load_policy(value)
-    if kind == "sampled":
+    if kind == "selected":
         from bimacppo_planner.agent import load_policy
-        from bimacppo_planner.policy import SampledPolicy
+        from bimacppo_planner.policy import with_selection
 
-        path, seed = value
-        return POLICY, SampledPolicy(load_policy(path), seed)
-    if kind == "median":
-        from bimacppo_planner.agent import load_policy
-        from bimacppo_planner.policy import MedianPolicy
-
-        return POLICY, MedianPolicy(load_policy(value))
+        path, selection, seed = value
+        return POLICY, with_selection(load_policy(path), selection, seed)
     if kind == RANDOM:
         return RANDOM, RandomPolicy(env_config.nvec, value)
     return POLICY, value
@@ -387,14 +382,11 @@ def evaluate(policy: Any = None, map_id: str = "dual_lane_4way", n_svs: Iterable
         action_selection = default_selection(spec, loaded)
     if action_selection not in ACTION_SELECTIONS:
         raise ValueError(f"action_selection must be one of {ACTION_SELECTIONS}, got {action_selection!r}")
-    if action_selection == "sample":
+    if action_selection != "argmax":
         if spec[0] != "path":
-            raise EvaluationError("action_selection 'sample' needs a policy file; a policy object samples itself")
-        spec = ("sampled", (spec[1], int(sample_seed)))
-    elif action_selection == "median":
-        if spec[0] != "path":
-            raise EvaluationError("action_selection 'median' needs a policy file")
-        spec = ("median", spec[1])
+            raise EvaluationError(f"action_selection {action_selection!r} needs a policy file; a policy object "
+                                  "acts as it does")
+        spec = ("selected", (spec[1], action_selection, int(sample_seed)))
     cells = [(t, n) for t in tasks for n in n_svs]
     mpc_config = resolve_mpc_config(loaded, mpc_config)   # a bad file fails here, once, not in every worker
     mpc_key = None if mpc_config is None else mpc_config.to_dict()
