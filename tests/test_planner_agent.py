@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from bimacppo_planner.agent import HighLevelPlanner, load_policy, route_for
+from bimacppo_planner.agent import HighLevelPlanner, load_policy, observed_goal, route_for
+from bimacppo_sim import WorldConfig, load_map
 from bimacppo_learning.checkpoint import CheckpointError, export_policy
 from bimacppo_planner.decision import EnvConfig
 from bimacppo_learning.env import IntersectionEnv
@@ -25,6 +26,54 @@ def test_planner_route_from_poses_equals_world_route():
         w = env.world
         route = route_for(env.road, np.array([w.ego[0], w.ego[1], w.ego[3]]), w.goal)
         np.testing.assert_array_equal(route, w.route)
+
+
+@pytest.mark.parametrize("map_id", ["dual_lane_4way", "single_lane_4way"])
+def test_observed_goal_is_the_world_goal_over_whole_episodes(map_id):
+    """Training observes the world's goal: the projection must be the identity on every
+    goal and EV position our world produces, or deployment would observe otherwise."""
+    env = IntersectionEnv(map_id=map_id)
+    rng = np.random.default_rng(0)
+    for seed in range(9):
+        env.reset(options={"n_sv": 0, "task": seed % 3, "scenario_seed": seed})
+        done = False
+        while not done:
+            w = env.world
+            np.testing.assert_array_equal(observed_goal(env.road, w.goal, w.ego[:2]), w.goal)
+            _, _, term, trunc, _ = env.step(env.action_space.sample() if rng.random() < 0.3
+                                            else np.array([4, 2, 1]))
+            done = term or trunc
+
+
+def test_observed_goal_of_a_far_goal_sits_where_training_put_goals():
+    road, cfg = load_map("dual_lane_4way"), WorldConfig.load()
+    d, H = cfg.success_distance, road.H
+    far = np.array([0.5 * road.lane_width, H + 25.0, np.pi / 2])     # straight, 25 m past the exit
+    # approaching and inside the junction: success_distance past the exit, the source's heading
+    np.testing.assert_allclose(observed_goal(road, far, (1.75, -40.0), cfg), [far[0], H + d, far[2]])
+    np.testing.assert_allclose(observed_goal(road, far, (0.0, 0.0), cfg), [far[0], H + d, far[2]])
+    # on the exit arm (either lane): success_distance ahead of the EV, never beyond the goal
+    np.testing.assert_allclose(observed_goal(road, far, (5.25, H + 5.0), cfg), [far[0], H + 5.0 + d, far[2]])
+    np.testing.assert_allclose(observed_goal(road, far, (1.75, H + 22.0), cfg), far)
+    # a goal nearer than training's is observed at training's distance too
+    near = np.array([far[0], H + 3.0, far[2]])
+    np.testing.assert_allclose(observed_goal(road, near, (1.75, -40.0), cfg), [far[0], H + d, far[2]])
+    # off the exit lanes, or on a straight road: as it is
+    odd = np.array([1.75, -30.0, np.pi / 2])
+    np.testing.assert_array_equal(observed_goal(road, odd, (1.75, -40.0), cfg), odd)
+    g = np.array([0.0, 40.0, np.pi / 2])
+    np.testing.assert_array_equal(observed_goal(load_map("three_lane_straight"), g, (0.0, 0.0), cfg), g)
+
+
+def test_planner_observes_the_projected_goal(policy_file):
+    road = load_map("dual_lane_4way")
+    hp = HighLevelPlanner(load_policy(policy_file), road)
+    ego = np.array([1.75, -50.0, 5.0, np.pi / 2])
+    far = np.array([1.75, road.H + 25.0, np.pi / 2])
+    hp.reset(ego, far)
+    _, info = hp.step(ego, np.zeros((0, 4)))
+    assert info["obs"][1] == pytest.approx(road.H + WorldConfig.load().success_distance + 50.0)
+    assert hp.goal[1] == far[1]                       # the route and success still use the source's goal
 
 
 def test_route_from_inside_the_junction_follows_the_episode_route():

@@ -127,6 +127,38 @@ def _route_from_junction(road: RoadMap, start_xy, start_psi, goal, cfg):
     return resample_route(tail, cfg.waypoint_spacing)
 
 
+def observed_goal(road: RoadMap, goal: np.ndarray, ego_xy, world_config: WorldConfig | None = None) -> np.ndarray:
+    """The goal pose the policy observes, given the source's goal pose [x, y, psi].
+
+    The observation (Eq. 18-20) locates the EV only relative to its goal, so the goal's
+    distance from the junction is, for the policy, where the junction is. Training puts
+    every goal ``success_distance`` past the junction exit; another source may put it
+    anywhere along the exit lane (40 m out, say). Rule, on a four-way map with the goal on
+    an exit lane: the policy observes the point on the goal's lane ``success_distance`` past
+    the exit; once the EV is on an exit lane of the goal's arm it observes the point
+    ``success_distance`` ahead of the EV, never beyond the source's goal. The source's own
+    goal still decides the route, the task and success. Any goal our world draws lies
+    exactly at ``success_distance``, where the rule is the identity, so training and
+    deployment observe the same; a goal off the exit lanes or on a straight road is
+    observed as it is."""
+    goal = np.asarray(goal, dtype=np.float64)
+    if road.kind != "four_way":
+        return goal
+    g = road.locate(float(goal[0]), float(goal[1]))
+    if g is None or road.lanes[g[0]].kind != "out":
+        return goal
+    d = (world_config or WorldConfig.load()).success_distance
+    s_obs = d
+    e = road.locate(float(ego_xy[0]), float(ego_xy[1]))
+    if e is not None and road.lanes[e[0]].kind == "out" and road.lanes[e[0]].arm == road.lanes[g[0]].arm:
+        s_obs = max(d, e[1] + d)
+    s_obs = min(s_obs, max(g[1], d), road.lanes[g[0]].length)
+    if abs(s_obs - g[1]) < 1e-9:
+        return goal
+    x, y, _ = road.lane_point(g[0], s_obs)
+    return np.array([x, y, goal[2]])
+
+
 class HighLevelPlanner:
     """Policy → x_IMR, one decision per call; see the module docstring."""
 
@@ -151,6 +183,7 @@ class HighLevelPlanner:
                                                 f"the environment config gives {self.cfg.obs_dim}, {self.cfg.nvec}")
         self.tracker: WaypointTracker | None = None
         self.goal: np.ndarray | None = None
+        self.world_cfg = WorldConfig.load()   # the rules the routes and the observed goal follow
 
     @classmethod
     def load(cls, policy_path: str | Path | None = None, map_id: str = "dual_lane_4way",
@@ -178,7 +211,7 @@ class HighLevelPlanner:
         svs = np.asarray(svs, dtype=np.float64).reshape(-1, 4)
         if not np.all(np.isfinite(svs)):
             raise ValueError("SV states contain NaN or inf")
-        obs = observe(self.cfg.observation, ego, self.goal, svs)
+        obs = observe(self.cfg.observation, ego, observed_goal(self.road, self.goal, ego[:2], self.world_cfg), svs)
         self.tracker.update(ego[0], ego[1])
         action = self._act(obs)
         x_imr, changed = decode_action(action, self.tracker, self.cfg.action, self.road.lateral_point, ego)
