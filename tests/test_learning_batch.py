@@ -169,8 +169,8 @@ def test_threat_entry_shaping_changes_returns_only_and_only_on_threatened_entrie
 
 
 
-def _run_logging_threat_test(monkeypatch, cfg, action, seed, task, max_decisions=1000):
-    """One N_sv = 3 episode (at most ``max_decisions``) of a constant ``action``, logging at every
+def _run_logging_threat_test(monkeypatch, cfg, action, seed, task, max_decisions=1000, n_sv=3):
+    """One episode with ``n_sv`` SVs (at most ``max_decisions``) of a constant ``action``, logging at every
     call of the yield rule's threat test (the start of each tick before the junction) the EV's
     speed, its distance to the box and the verdict. Returns (return, log, final ego, crossed)."""
     import bimacppo_learning.batch as batch_mod
@@ -184,7 +184,7 @@ def _run_logging_threat_test(monkeypatch, cfg, action, seed, task, max_decisions
 
     monkeypatch.setattr(batch_mod, "junction_threatened", test)
     b = IntersectionBatch(1, config=cfg)
-    b.reset(0, seed=seed, options={"n_sv": 3, "task": task})
+    b.reset(0, seed=seed, options={"n_sv": n_sv, "task": task})
     for _ in range(max_decisions):
         _, _, te, tr, _ = b.step(action)
         if te[0] or tr[0]:
@@ -218,6 +218,31 @@ def test_idle_clear_shaping_prices_standing_only_while_the_junction_is_clear(mon
         kinds["threatened"] += int(np.sum(standing & (log1[:, 2] == 1.0)))
         assert r1 - r2 == pytest.approx(price / every * idle_clear, abs=1e-9)
     assert kinds["clear"] > 0 and kinds["threatened"] > 0, kinds
+
+
+def test_graded_idle_clear_prices_each_clear_tick_by_its_speed_shortfall(monkeypatch):
+    """With ``go_speed`` set, a clear tick pays idle_clear * (1 - v / go_speed) (nothing at or
+    above go_speed), a threatened tick nothing: the return differs from the unshaped run's by
+    exactly that sum, the trajectories not at all. A creep at 2 m/s (WP0) pays a share between
+    0 and 1, which the stand test (go_speed 0) would not price at all."""
+    base = EXT.to_dict()
+    price, go = -0.3, 4.0
+    graded = EnvConfig.from_dict({**base, "reward": {**base["reward"], "idle_clear": price, "go_speed": go}})
+    plain = EnvConfig.from_dict(base)
+    every = graded.action.decision_every
+    creep = np.array([[0, 1, 1]])       # nearest waypoint at 2 m/s
+    partial, threatened = 0, 0
+    for k in range(4):
+        (r1, log1, ego1, crossed), (r2, log2, ego2, _) = [
+            _run_logging_threat_test(monkeypatch, cfg, creep, k, k % 3, max_decisions=20, n_sv=3 * (k % 2))
+            for cfg in (graded, plain)]
+        np.testing.assert_array_equal(ego1, ego2)
+        assert not crossed
+        share = np.clip(1.0 - log1[:, 0] / go, 0.0, 1.0) * (log1[:, 2] == 0.0)
+        partial += int(np.sum((share > 0.05) & (share < 0.95)))
+        threatened += int(np.sum(log1[:, 2] == 1.0))
+        assert r1 - r2 == pytest.approx(price / every * float(np.sum(share)), abs=1e-9)
+    assert partial > 0 and threatened > 0
 
 
 def test_threat_speed_shaping_prices_only_threatened_approaches_too_fast_to_stop(monkeypatch):

@@ -30,7 +30,7 @@ from gymnasium.utils import seeding
 
 from bimacppo_common.conventions import TASKS
 from bimacppo_mpc import MPCConfig, make_controller
-from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, observe, step_reward
+from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, idle_share, observe, step_reward
 from bimacppo_sim import Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
 from bimacppo_sim.drivers import junction_distance, junction_threatened
@@ -206,8 +206,8 @@ class IntersectionBatch:
                 threatened = False
                 if not self.crossed[i]:
                     threatened = junction_threatened(self.worlds[i], tcfg)
-                if rcfg.idle_clear != 0.0 and not threatened and X0[i, 2] < rcfg.idle_speed:
-                    shaping[i] += rcfg.idle_clear / acfg.decision_every
+                if rcfg.idle_clear != 0.0 and not threatened:
+                    shaping[i] += rcfg.idle_clear * idle_share(rcfg, X0[i, 2]) / acfg.decision_every
                 if rcfg.threat_speed != 0.0 and threatened and X0[i, 2] > rcfg.idle_speed and \
                         X0[i, 2] ** 2 > 2.0 * tcfg.stop_decel * max(junction_distance(self.worlds[i]), 0.0):
                     shaping[i] += rcfg.threat_speed / acfg.decision_every

@@ -65,6 +65,7 @@ class RewardConfig:
     idle_clear: float = setting(hi=0.0)
     threat_speed: float = setting(hi=0.0)
     idle_speed: float = setting(lo=0.0)
+    go_speed: float = setting(lo=0.0)
     lane_change: float
     step: float
 
@@ -228,6 +229,16 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
             wx, wy, wpsi = float(p[0]), float(p[1]), float(p[2])
             changed = True
     return np.array([wx, wy, float(cfg.speeds[a2]), wpsi], dtype=np.float64), changed
+
+
+def idle_share(cfg: RewardConfig, v: float) -> float:
+    """The share of ``idle_clear`` a tick at EV speed ``v`` pays while the junction is clear:
+    with ``go_speed`` 0 (a stand test) 1 below ``idle_speed`` and 0 above; with ``go_speed`` > 0
+    the speed's shortfall from it, 1 - v / go_speed (0 at or above), so that creeping pays part
+    of the price and not only a stand."""
+    if cfg.go_speed > 0.0:
+        return max(0.0, 1.0 - float(v) / cfg.go_speed)
+    return 1.0 if v < cfg.idle_speed else 0.0
 
 
 def step_reward(cfg: RewardConfig, lane_change: bool, outcome: str | None = None, n_sv: int = 0,
