@@ -395,6 +395,17 @@ def test_train_world_config_sets_the_training_episodes_only_and_is_recorded(trai
         env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": 4})
         starts.append(float(env.world.ego[2]))
     assert starts[0] <= 0.5 and starts[1] >= 3.0          # the file's speeds, else the packaged 3-6 m/s
+    # a resume in another world than the run's, or in the packaged one, is refused before writing
+    before = _snapshot(out)
+    for extra in (["--world-config", str(tmp_path / "other.yaml")], []):
+        (tmp_path / "other.yaml").write_text("ev_speed_min: 0.0\nev_speed_max: 0.7\n")
+        assert train_main(["--episodes", "3", "--seed", "3", "--run-dir", str(out), "--ppo-config", str(cfg),
+                           "--resume", "--no-progress", *extra]) == 2
+        line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+        assert "another world" in line and "ev_speed_max: 0.5 != " in line, line
+    assert _snapshot(out) == before
+    assert train_main(["--episodes", "3", "--seed", "3", "--run-dir", str(out), "--ppo-config", str(cfg),
+                       "--resume", "--no-progress", "--world-config", str(world)]) == 0
     world.write_text("ev_sped_min: 0.0\n")
     assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "bad"), "--world-config", str(world)]) == 2
     assert "ev_sped_min" in _one_error_line(capsys.readouterr().err, "bimacppo-train")

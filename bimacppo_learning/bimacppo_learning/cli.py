@@ -117,7 +117,24 @@ def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_c
     return None
 
 
-def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg):
+def _world_differs(path: Path, run_meta_: dict, world_cfg) -> str | None:
+    """Why a run cannot be resumed in the training world ``world_cfg`` (None: the packaged
+    world.yaml): its checkpoint records another one (none recorded = the packaged world)."""
+    from bimacppo_sim import WorldConfig
+
+    from .checkpoint import config_differences
+
+    saved = run_meta_.get("world_config")
+    if saved is None:
+        saved = world_config_dict(WorldConfig.load())
+    diff = config_differences(saved, world_config_dict(world_cfg or WorldConfig.load()))
+    if diff:
+        return (f"{path}: was trained in another world ({'; '.join(diff)}; checkpoint != this run): "
+                "resume with the --world-config it was trained with")
+    return None
+
+
+def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg=None):
     """Every check a run can fail before it starts, so that a refused run leaves its directory as
     it was. Returns (error message or None, the --init-policy agent or None)."""
     from .checkpoint import (CheckpointError, config_differences, latest_checkpoint, load_checkpoint,
@@ -144,6 +161,9 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg):
             if diff:
                 return (f"{latest}: was trained with another PPO config ({'; '.join(diff)}; checkpoint != "
                         "this run): resume with the same ppo section"), None
+            why = _world_differs(latest, run_meta_of(d, latest), world_cfg)
+            if why:
+                return why, None
         agent = None
         if args.init_policy is not None:
             path = args.init_policy
@@ -191,7 +211,7 @@ def train_main(argv=None) -> int:
     except (ConfigError, ValueError, OSError) as exc:
         return fail(prog, exc)
     run_dir = args.run_dir or Path("runs") / f"{args.curriculum}-s{args.seed}"
-    why, agent = _preflight(args, env_cfg, pcfg, run_dir, mpc_cfg)
+    why, agent = _preflight(args, env_cfg, pcfg, run_dir, mpc_cfg, world_cfg)
     if why:
         return fail(prog, why)
     run_dir.mkdir(parents=True, exist_ok=True)
