@@ -2,7 +2,7 @@
 """Training throughput: the per-env subprocess path and the batched path, side by side, one run.
 
 Each configuration trains BiM-ACPPO from scratch for the same number of episodes, same seed and
-env config (default: the extended config of the shipped policy), in a fresh child process, and
+env config (default: the extended config), in a fresh child process, and
 the table prints episodes/s, world ticks/s, decisions/s, the time split (env stepping, policy
 forward, PPO update, bookkeeping), peak memory, and each row's ratio to the first row. Prints
 figures; asserts nothing. Numbers on a shared machine are noisy: repeat with --repeat.

@@ -360,9 +360,12 @@ def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_p
         other = tmp_path / "mpc.yaml"
         other.write_text("horizon: 12\n")
         assert resolve_mpc_config(loaded, other).horizon == 12           # --mpc-config wins
-    # the shipped policies record none: the packaged mpc.yaml, as before (None)
+    # a file that records none (the clone, written before runs recorded theirs): the packaged
+    # mpc.yaml (None); the shipped default records the packaged bounded controller
+    _, clone, _ = resolve_policy(REPO / "bimacppo_planner/bimacppo_planner/policies/bimacppo_dual_lane_clone.pt")
+    assert "mpc_config" not in clone.meta and resolve_mpc_config(clone) is None
     _, shipped, _ = resolve_policy(None)
-    assert "mpc_config" not in shipped.meta and resolve_mpc_config(shipped) is None
+    assert resolve_mpc_config(shipped).to_dict() == MPCConfig.load().to_dict()
     # end to end: a policy file's cells run its recorded controller unless told otherwise
     from bimacppo_learning.evaluate import evaluate
     from bimacppo_mpc.config import DEFAULT_PATH

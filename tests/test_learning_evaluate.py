@@ -67,7 +67,8 @@ def fresh_random_cache():
 
 def test_an_object_with_predict_or_act_is_evaluated_like_its_file():
     path = shipped_policy_path()
-    from_file = ev.evaluate(path, workers=1, random_row=False, **CELL)
+    # an object acts by its own act/predict (the argmax), whatever selection its file records
+    from_file = ev.evaluate(path, workers=1, random_row=False, action_selection="argmax", **CELL)
     wrapped = PredictPolicy(load_policy(path))
     # an object carries no env config: it runs on the one given (here the file's, which differs
     # from the packaged default that an object gets otherwise)
@@ -255,7 +256,7 @@ def test_slow_svs_runs_the_overtaking_protocol_the_way_training_draws_it():
     policy = load_policy(shipped_policy_path())
     j, n = TASKS.index("straight"), 4
     [cell] = ev.evaluate(shipped_policy_path(), "three_lane_straight", (3,), (j,), n, workers=1,
-                         random_row=False, seed_set="validation", slow_svs=2)
+                         random_row=False, seed_set="validation", slow_svs=2, action_selection="argmax")
     env = IntersectionEnv(map_id="three_lane_straight", config=env_config_of(policy))
     hand, slowed = Counter(), []
     for k in range(n):

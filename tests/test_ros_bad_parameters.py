@@ -56,8 +56,12 @@ def test_a_median_planner_is_built_and_a_class_that_cannot_take_it_is_refused():
     from bimacppo_planner.ros.planner_node import make_planner
     from bimacppo_ros_common.params import ConfigError
 
+    from bimacppo_planner.agent import load_policy
+
     assert make_planner("default", "", "dual_lane_4way", "median").action_selection == "median"
-    assert make_planner("default", "", "dual_lane_4way").action_selection == "argmax"
+    assert make_planner("default", "", "dual_lane_4way", "argmax").action_selection == "argmax"
+    # no selection given: the file's own (the shipped default records median)
+    assert make_planner("default", "", "dual_lane_4way").action_selection == load_policy().selection
     assert isinstance(make_planner(f"{__name__}:ArgmaxOnlyPlanner", "", "x"), ArgmaxOnlyPlanner)
     with pytest.raises(ConfigError, match="does not take action_selection"):
         make_planner(f"{__name__}:ArgmaxOnlyPlanner", "", "x", "median")
