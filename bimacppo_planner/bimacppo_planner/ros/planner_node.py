@@ -191,6 +191,13 @@ class PlannerNode(Node):
         sub(I.DiagnosticStatus, I.TOPIC_RESULT, self._on_result, I.RESULT_QOS)
         sub(I.Odometry, I.TOPIC_EGO_ODOM, self._on_odom, I.STATE_QOS)
         sub(I.MultiDOFJointTrajectory, I.TOPIC_OBJECTS, self._on_objects, I.STATE_QOS)
+        pol = getattr(self.hp, "policy", None)
+        if pol is not None:    # which policy answers, and how it picks its actions, once at start
+            m = getattr(pol, "meta", {}) or {}
+            self.get_logger().info(
+                f"policy {getattr(pol, 'path', '?')} (curriculum {m.get('curriculum', '?')}, seed "
+                f"{m.get('seed', '?')}, {m.get('episodes', '?')} episodes), actions by "
+                f"{getattr(self.hp, 'action_selection', '?')}, map {getattr(self.road, 'id', '?')}")
 
     def _log(self, level: str, msg: str) -> None:
         getattr(self.get_logger(), level)(msg)
