@@ -44,6 +44,7 @@ class ActionConfig:
     decision_every: int = setting(lo=1)
     zero_speed: str = setting(choices=ZERO_SPEED_MODES)   # waypoint (paper) | hold: see env.yaml
     chord_tol: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
+    min_lookahead: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
 
     def _check(self) -> None:
         if self.lane_change != (-1, 0, 1):
@@ -149,34 +150,59 @@ class WaypointTracker:
     comes back, as in the paper); A1 is the next ``n`` of those left, WP0 nearest, which
     is what lets the policy stop or yield by choosing WP0. Near the goal, when fewer than
     ``n`` remain, the last waypoint is repeated so the action space keeps its size.
+
+    With ``min_lookahead`` (m) A1 offers the next ``n`` waypoints that lie at least that far
+    ahead of the EV (along each waypoint's heading, the test that removes passed ones), as a
+    pure-pursuit tracker keeps a minimum look-ahead: the NMPC heads for x_IMR in a straight line,
+    so a waypoint a few decimetres ahead but a metre or more to the side (the EV off the lane
+    centre, or a lane change ordered while creeping) asks for a heading change of 60-80 degrees,
+    and the EV drives off the road at the next waypoint. ``idx`` stays the nearest waypoint not
+    yet passed; ``start`` is where A1's waypoints begin.
     """
 
-    def __init__(self, route: np.ndarray, n: int):
+    def __init__(self, route: np.ndarray, n: int, min_lookahead: float | None = None):
         route = np.asarray(route, dtype=np.float64)
         if route.ndim != 2 or route.shape[1] != 3 or len(route) == 0 or not np.all(np.isfinite(route)):
             raise ValueError(f"route must be a non-empty finite (M, 3) array of [x, y, psi], got shape {route.shape}")
+        if min_lookahead is not None and not (math.isfinite(min_lookahead) and min_lookahead > 0.0):
+            raise ValueError(f"min_lookahead must be a positive number of metres or None, got {min_lookahead!r}")
         self.route = route
         self.n = n
+        self.min_lookahead = min_lookahead
         self.idx = 0
+        self.start = 0
         self._cos = np.cos(route[:, 2])
         self._sin = np.sin(route[:, 2])
 
+    def _ahead(self, i: int, x: float, y: float) -> float:
+        r = self.route
+        return (r[i, 0] - x) * self._cos[i] + (r[i, 1] - y) * self._sin[i]
+
     def update(self, x: float, y: float) -> None:
-        r, m = self.route, len(self.route) - 1
+        m = len(self.route) - 1
         i = self.idx
-        while i < m and (r[i, 0] - x) * self._cos[i] + (r[i, 1] - y) * self._sin[i] < 0.0:
+        while i < m and self._ahead(i, x, y) < 0.0:
             i += 1
         self.idx = i
+        if self.min_lookahead is not None:
+            while i < m and self._ahead(i, x, y) < self.min_lookahead:
+                i += 1
+        self.start = i
 
     def candidates(self) -> np.ndarray:
-        j = np.minimum(np.arange(self.idx, self.idx + self.n), len(self.route) - 1)
+        j = np.minimum(np.arange(self.start, self.start + self.n), len(self.route) - 1)
         return self.route[j]
+
+    def heading_here(self) -> float:
+        """The route's heading at the nearest waypoint not yet passed (WP0 without a look-ahead)."""
+        return float(self.route[self.idx, 2])
 
     def chord_limited(self, k: int, x: float, y: float, tol: float) -> int:
         """The farthest of WP0..WPk whose chord from (x, y) passes every route point before it
         within ``tol`` (m). The route is a polyline through its points, so checking its vertices
-        bounds the whole path between the EV and the waypoint. WP0 is always allowed: there is
-        no route point between the EV and it."""
+        bounds the whole path between the EV and the waypoint. WP0 is always allowed: without a
+        look-ahead there is no route point between the EV and it, with one it is the nearest
+        waypoint the decoding may aim at."""
         r, m = self.route, len(self.route) - 1
 
         def off_chord(i: int, dx: float, dy: float, len2: float) -> float:
@@ -186,7 +212,7 @@ class WaypointTracker:
             return math.hypot(px - t * dx, py - t * dy)
 
         for kk in range(k, 0, -1):
-            j = min(self.idx + kk, m)
+            j = min(self.start + kk, m)
             dx, dy = r[j, 0] - x, r[j, 1] - y
             len2 = dx * dx + dy * dy
             if len2 < 1e-18 or all(off_chord(i, dx, dy, len2) <= tol for i in range(self.idx, j)):
@@ -206,7 +232,8 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     the EV's own, because a stop ordered inside a turn brakes over a few metres: holding the
     current heading would straighten the wheel there and leave the lane. With ``cfg.chord_tol``
     set, A1 picks among the waypoints whose chord from the EV keeps to the route
-    (`WaypointTracker.chord_limited`), before any lane change is applied.
+    (`WaypointTracker.chord_limited`), before any lane change is applied. The tracker's own
+    ``min_lookahead`` (``cfg.min_lookahead``) decides where WP0 is.
     """
     a1, a2, a3 = int(action[0]), int(action[1]), int(action[2])
     if not (0 <= a1 < cfg.n_waypoints and 0 <= a2 < len(cfg.speeds) and 0 <= a3 < len(cfg.lane_change)):
@@ -214,8 +241,7 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     if cfg.zero_speed == "hold" and cfg.speeds[a2] == 0.0:
         if ego is None:
             raise ValueError("action.zero_speed 'hold' needs the EV pose (ego) to decode a stop")
-        return np.array([float(ego[0]), float(ego[1]), 0.0, float(tracker.candidates()[0][2])],
-                        dtype=np.float64), False
+        return np.array([float(ego[0]), float(ego[1]), 0.0, tracker.heading_here()], dtype=np.float64), False
     if cfg.chord_tol is not None:
         if ego is None:
             raise ValueError("action.chord_tol needs the EV pose (ego) to decode a waypoint")
