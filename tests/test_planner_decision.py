@@ -1,5 +1,6 @@
 """Observation (eq. 18-20) and action decoding (§III-C) on plain arrays."""
 import math
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -155,6 +156,10 @@ VARIANTS = {   # variant file -> what it changes relative to the packaged env.ya
          "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0},
          "reward": {"timeout_mode": "truncate", "threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1,
                     "go_speed": 4.0}},
+    "studies/config/env_wait_chord_look.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0]},
+         "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0, "min_lookahead": 4.0},
+         "reward": {"timeout_mode": "truncate", "threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1}},
     "studies/config/env_extended_safe.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}, "reward": {"collision_base": -30.0}},
@@ -340,3 +345,78 @@ def test_chord_limit_keeps_a_constant_far_waypoint_on_the_road_in_the_empty_righ
         out[name] = c.counts
     assert out["paper"].get("collision", 0) == 3
     assert out["chord"].get("success", 0) == 3
+
+
+def test_min_lookahead_starts_a1_at_the_first_waypoint_that_far_ahead():
+    plain, look = WaypointTracker(_straight_route(), 5), WaypointTracker(_straight_route(), 5, min_lookahead=4.0)
+    for tr in (plain, look):
+        tr.update(0.0, 7.0)
+    np.testing.assert_allclose(plain.candidates()[:, 1], [9, 12, 15, 18, 21])
+    np.testing.assert_allclose(look.candidates()[:, 1], [12, 15, 18, 21, 24])   # 9 is 2 m ahead: too close
+    assert look.idx == plain.idx == 3          # passed waypoints are the same rule with or without
+    look.update(0.0, 8.0)                      # exactly 4 m ahead counts as far enough
+    np.testing.assert_allclose(look.candidates()[0, 1], 12)
+    look.update(0.0, 100.0)                    # past the end: the last waypoint repeats
+    np.testing.assert_allclose(look.candidates()[:, 1], [57] * 5)
+    with pytest.raises(ValueError, match="min_lookahead"):
+        WaypointTracker(_straight_route(), 5, min_lookahead=0.0)
+    with pytest.raises(ValueError, match="min_lookahead"):
+        WaypointTracker(_straight_route(), 5, min_lookahead=float("nan"))
+    with pytest.raises(ConfigError, match="min_lookahead"):
+        EnvConfig.load(overrides={"action.min_lookahead": -1.0})
+
+
+def test_min_lookahead_bounds_the_turn_a_waypoint_asks_for_and_keeps_the_stop_in_place():
+    """The EV anywhere across its lane and the next waypoint close ahead: without a look-ahead
+    the aim from the EV to x_IMR can point almost sideways, with 4 m it stays within
+    atan(lane width + half a lane / 4 m), whatever A1 and A3."""
+    route = _straight_route()
+    lateral = lambda x, y, psi, side: (x - 3.5 * side, y, psi)     # noqa: E731
+    base = ActionConfig(n_waypoints=5, speeds=(0.0, 2.0, 4.0, 6.0, 8.0), lane_change=(-1, 0, 1),
+                        decision_every=3, zero_speed="hold", chord_tol=1.0)
+    worst = {}
+    for L in (None, 4.0):
+        cfg = dataclasses_replace(base, min_lookahead=L)
+        w = 0.0
+        for y in np.arange(0.0, 30.0, 0.25):
+            for x in (-1.75, -0.5, 0.0, 0.5, 1.75):
+                tr = WaypointTracker(route, 5, L)
+                tr.update(x, y)
+                ego = np.array([x, y, 0.5, math.pi / 2])
+                for a1 in range(5):
+                    for a3 in range(3):
+                        got, _ = decode_action([a1, 1, a3], tr, cfg, lateral, ego)
+                        ahead, side = got[1] - y, got[0] - x
+                        w = max(w, math.degrees(math.atan2(abs(side), ahead)))
+                        stop, _ = decode_action([a1, 0, a3], tr, cfg, lateral, ego)   # hold: unchanged
+                        np.testing.assert_array_equal(stop, [x, y, 0.0, math.pi / 2])
+        worst[L] = w
+    assert worst[None] > 80.0
+    assert worst[4.0] <= math.degrees(math.atan2(3.5 + 1.75, 4.0)) + 1e-9
+
+
+def test_min_lookahead_lets_a_creeping_ev_reach_the_goal_on_the_empty_road():
+    """End to end through the env and the NMPC: WP0 at 2 m/s with a lane change ordered left and
+    right in turn stalls the EV short of every goal without the look-ahead; with it, it arrives."""
+    from bimacppo_learning.evaluate import evaluate
+    from conftest import REPO
+
+    class Dither:
+        def __init__(self):
+            self.k = 0
+
+        def begin_episode(self, seed):
+            self.k = 0
+
+        def act(self, obs):
+            self.k += 1
+            return np.array([0, 1, (0, 2)[self.k % 2]], np.int64)
+
+    out = {}
+    for name in ("env_wait_chord", "env_wait_chord_look"):
+        cfg = EnvConfig.load(REPO / "studies" / "config" / f"{name}.yaml")
+        cells = evaluate(Dither(), map_id="dual_lane_4way", n_svs=(0,), tasks=(0, 1, 2), episodes=2,
+                         workers=1, random_row=False, env_config=cfg, seed_set="validation")
+        out[name] = sum((c.counts for c in cells), Counter())
+    assert out["env_wait_chord"].get("success", 0) < 6
+    assert out["env_wait_chord_look"] == Counter(success=6)
