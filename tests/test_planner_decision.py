@@ -385,7 +385,8 @@ def test_min_lookahead_bounds_the_turn_a_waypoint_asks_for_and_keeps_the_stop_in
         w = 0.0
         for y in np.arange(0.0, 30.0, 0.25):
             for x in (-1.75, -0.5, 0.0, 0.5, 1.75):
-                tr = WaypointTracker(route, 5, L)
+                tr = WaypointTracker.for_action(route, cfg)
+                assert tr.min_lookahead == L and tr.n == 5
                 tr.update(x, y)
                 ego = np.array([x, y, 0.5, math.pi / 2])
                 for a1 in range(5):

@@ -145,7 +145,7 @@ class IntersectionBatch:
         w = self.worlds[i]
         w.reset(scenario)
         self.scenarios[i] = scenario
-        tr = WaypointTracker(w.route, self.cfg.action.n_waypoints, self.cfg.action.min_lookahead)
+        tr = WaypointTracker.for_action(w.route, self.cfg.action)
         ego = w.ego_tuple()
         tr.update(ego[0], ego[1])
         self.trackers[i] = tr

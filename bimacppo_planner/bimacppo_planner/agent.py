@@ -196,7 +196,7 @@ class HighLevelPlanner:
         self.goal = _finite(goal, 3, "goal pose")
         if route is None:
             route = route_for(self.road, np.array([ego[0], ego[1], ego[3]]), self.goal)
-        self.tracker = WaypointTracker(route, self.cfg.action.n_waypoints, self.cfg.action.min_lookahead)
+        self.tracker = WaypointTracker.for_action(route, self.cfg.action)
         self.tracker.update(ego[0], ego[1])
 
     @property

@@ -174,6 +174,11 @@ class WaypointTracker:
         self._cos = np.cos(route[:, 2])
         self._sin = np.sin(route[:, 2])
 
+    @classmethod
+    def for_action(cls, route: np.ndarray, cfg: ActionConfig) -> "WaypointTracker":
+        """The tracker that ``decode_action(..., cfg)`` expects: A1's size and look-ahead from ``cfg``."""
+        return cls(route, cfg.n_waypoints, cfg.min_lookahead)
+
     def _ahead(self, i: int, x: float, y: float) -> float:
         r = self.route
         return (r[i, 0] - x) * self._cos[i] + (r[i, 1] - y) * self._sin[i]
@@ -232,8 +237,8 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     the EV's own, because a stop ordered inside a turn brakes over a few metres: holding the
     current heading would straighten the wheel there and leave the lane. With ``cfg.chord_tol``
     set, A1 picks among the waypoints whose chord from the EV keeps to the route
-    (`WaypointTracker.chord_limited`), before any lane change is applied. The tracker's own
-    ``min_lookahead`` (``cfg.min_lookahead``) decides where WP0 is.
+    (`WaypointTracker.chord_limited`), before any lane change is applied. Where WP0 is
+    (``cfg.min_lookahead``) is the tracker's, built by ``WaypointTracker.for_action(route, cfg)``.
     """
     a1, a2, a3 = int(action[0]), int(action[1]), int(action[2])
     if not (0 <= a1 < cfg.n_waypoints and 0 <= a2 < len(cfg.speeds) and 0 <= a3 < len(cfg.lane_change)):
