@@ -244,7 +244,7 @@ class IntersectionBatch:
                 term[i] = outcome in ("success", "collision") or (outcome == "timeout" and rcfg.timeout_terminal)
                 trunc[i] = not term[i]
                 self.running[i] = False
-                info.update(outcome=outcome, n_sv=sc.n_sv, task=task_index(sc.task), scenario_seed=sc.seed,
+                info.update(outcome=outcome, collided_with=res.collided_with, n_sv=sc.n_sv, task=task_index(sc.task), scenario_seed=sc.seed,
                             n_pcp=int(w.n_pcp), episode_return=float(self.returns[i]),
                             episode_steps=int(self.steps[i]), lane_changes=int(self.lane_changes[i]),
                             mpc_failures=int(self.mpc_failures[i]), sim_time=float(w.time),
