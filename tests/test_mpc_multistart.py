@@ -132,3 +132,67 @@ def test_the_gate_sees_a_new_reference_per_slot_and_after_reset():
     again = ctrl.solve_batch(X0b, Xrb, Upb)
     assert again.starts[1] == 2
     assert np.array_equal(again.U[1], first.U[1]) and again.cost[1] == first.cost[1]
+
+
+def _random_problems(n, seed):
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        yield (np.r_[rng.uniform(-3, 3, 2), rng.uniform(0, 8), rng.uniform(-0.5, 0.5)],
+               np.r_[rng.uniform(0, 12), rng.uniform(-3, 3), rng.choice([0.0, 4.0, 8.0]), rng.uniform(-0.5, 0.5)],
+               np.r_[rng.uniform(-2, 2), rng.uniform(-0.6, 0.6)])
+
+
+def test_the_cut_keeps_a_winning_second_start():
+    assert CFG.fast.second_start_cut is not None
+    full = make_controller(CFG.replace(fast={"second_start_cut": None}), "fast").solve(X0, REF, UPREV)
+    cut = make_controller(CFG, "fast").solve(X0, REF, UPREV)
+    assert cut.ok and cut.starts == 2
+    assert cut.cost == full.cost and np.array_equal(cut.U, full.U)
+
+
+def test_the_cut_saves_iterations_and_never_returns_worse_than_one_start():
+    always = {"steer_bound_gate": False}
+    full = make_controller(CFG.replace(fast={**always, "second_start_cut": None}), "fast")
+    cut = make_controller(CFG.replace(fast=always), "fast")
+    one = make_controller(ONE_START, "fast")
+    it_full = it_cut = 0
+    for x0, ref, up in _random_problems(24, seed=11):
+        for c in (full, cut, one):
+            c.reset()
+        a, b, o = full.solve(x0, ref, up), cut.solve(x0, ref, up), one.solve(x0, ref, up)
+        assert a.ok and b.ok and o.ok
+        assert b.cost <= o.cost * (1 + 1e-12)        # an abandoned second start keeps the first result
+        assert b.cost >= a.cost                      # the cut can only lose a win, never find a cheaper one
+        it_full += a.iterations
+        it_cut += b.iterations
+    assert it_cut < it_full
+
+
+def test_sqp_abandons_a_start_that_cannot_beat_the_bound():
+    from bimacppo_mpc.controller import pack_params
+    P = pack_params(CFG)
+    N = CFG.horizon
+    xr, vlo, vhi = np.empty(4), np.empty(N), np.empty(N)
+    zlo, zhi = np.empty(2 * N), np.empty(2 * N)
+    assert K.prepare(X0, REF, UPREV, P, xr, vlo, vhi, zlo, zhi) == K.ST_OK
+
+    def run(j_bar):
+        z = np.zeros(2 * N)
+        K.project(z, X0[2], vlo, vhi, zlo, zhi, P)
+        wk = K.sqp_workspace(N, P)
+        K.build_constraints(X0[2], vlo, vhi, zlo, zhi, P, wk[5], wk[6])
+        return K.sqp_ws(X0, xr, UPREV, z, P, 60, 200, vlo, vhi, zlo, zhi, np.empty((N + 1, 4)), wk, j_bar)
+
+    st, J, it = run(np.inf)
+    assert st == K.ST_OK and it > 0
+    st_low, J_low, it_low = run(0.5 * J)              # the optimum itself is above this bound
+    assert st_low == K.ST_ABANDONED and it_low < it
+    P[K.P_CUT] = 0.0                                  # second_start_cut: null, never abandon
+    assert run(0.5 * J)[0] == K.ST_OK
+
+
+def test_the_cut_is_validated():
+    assert CFG.replace(fast={"second_start_cut": None}).fast.second_start_cut is None
+    for bad in (0.5, -1.0, "2"):
+        with pytest.raises(ValueError, match="fast.second_start_cut"):
+            CFG.replace(fast={"second_start_cut": bad})

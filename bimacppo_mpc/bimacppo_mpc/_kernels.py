@@ -41,13 +41,15 @@ ST_NONFINITE_STATE = 5
 ST_NONFINITE_REF = 6
 ST_NONFINITE_UPREV = 7
 ST_NONFINITE_RESULT = 8
+ST_ABANDONED = 9           # a second start stopped early: it could not become the cheaper one
 
 # indices into the packed parameter vector P (built by controller.pack_params)
 P_L, P_DT, P_AMIN, P_AMAX, P_DMIN, P_DMAX, P_VMIN, P_VMAX = 0, 1, 2, 3, 4, 5, 6, 7
 P_QX, P_QU, P_QDU = 8, 12, 14
 P_BRAKE, P_RELAX, P_TOL, P_EXACT, P_STEER_START, P_STEER_GATE = 16, 17, 18, 19, 20, 21
 P_STEER_RATE, P_JERK = 22, 23     # rate bounds [rad/s], [m/s^3]; 0 = no bound
-P_SIZE = 24
+P_CUT = 24                        # fast.second_start_cut; 0 = never abandon
+P_SIZE = 25
 
 # numerical constants of the linear algebra (not tuning knobs: scale-free guards)
 _EPS_PIVOT = 1e-12       # relative pivot below which a working-set row is dependent
@@ -445,6 +447,18 @@ def fwd_solve(Lc, b, x, m):
 
 
 @njit(cache=True)
+def fwd_solve_from(Lc, b, x, m, start):
+    """fwd_solve for b with b[:start] = 0, whose solution is zero there too."""
+    for i in range(start):
+        x[i] = 0.0
+    for i in range(start, m):
+        t = b[i]
+        for k in range(start, i):
+            t -= Lc[i, k] * x[k]
+        x[i] = t / Lc[i, i]
+
+
+@njit(cache=True)
 def bwd_solve(Lc, b, x, m):
     for i in range(m - 1, -1, -1):
         t = b[i]
@@ -462,13 +476,19 @@ def _ws_add(Lh, G, idx, Y, Ls, nW, n, y, tmp):
     above the test's threshold, and appending would write past Y, Ls and W (n slots each)."""
     if nW >= n:
         return nW
-    fwd_solve(Lh, G[idx], y, n)
+    row = G[idx]
+    start = 0
+    while start < n and row[start] == 0.0:
+        start += 1
+    # y = Lh^{-1} row is zero before the row's first nonzero, so the solve and the products
+    # start there (the skipped terms are exact zeros: the results are the dense ones)
+    fwd_solve_from(Lh, row, y, n, start)
     yy = 0.0
-    for i in range(n):
+    for i in range(start, n):
         yy += y[i] * y[i]
     for r in range(nW):
         t = 0.0
-        for i in range(n):
+        for i in range(start, n):
             t += Y[i, r] * y[i]
         tmp[r] = t
     # l = Ls^{-1} (Y^T y)
@@ -719,18 +739,25 @@ def sqp(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X):
     """Solve one problem from the feasible initial guess z (overwritten). Returns (status, cost, iters)."""
     wk = sqp_workspace(z.size // 2, P)
     build_constraints(x0[2], vlo, vhi, zlo, zhi, P, wk[5], wk[6])
-    return sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk)
+    return sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk, np.inf)
 
 
 @njit(cache=True)
-def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk):
-    """sqp() on the workspace wk of sqp_workspace, whose G, h already hold build_constraints."""
+def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk, j_bar):
+    """sqp() on the workspace wk of sqp_workspace, whose G, h already hold build_constraints.
+
+    j_bar is the cost this run has to beat to be of use (the first start's, for the second
+    start; np.inf otherwise). The run stops with ST_ABANDONED at the first iterate whose cost,
+    less second_start_cut times the QP's predicted decrease, is still above j_bar: the local
+    model says that even a step that many times better than predicted leaves it the dearer
+    result (docs/mpc.md, "Two starts")."""
     N = z.size // 2
     n = 2 * N
     (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn) = wk
     m = h.size
     exact = P[P_EXACT] > 0.5
     tol = P[P_TOL]
+    cut = P[P_CUT]
     dt = P[P_DT]
     slacks(z, h, dt, b)
     nW = 0
@@ -761,6 +788,8 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
         pred = -(gp + 0.5 * php)
         if code == 0 and pred <= tol * (1.0 + J):
             return ST_OK, J, it
+        if cut > 0.0 and J - cut * pred > j_bar:
+            return ST_ABANDONED, J, it
         if gp >= 0.0:
             return ST_QP, J, it
         alpha = 1.0
@@ -962,13 +991,14 @@ def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter
         initial_guess(x0, xr, uprev, Uwarm[bi], has_warm[bi], guesses, P, vlo, vhi, zlo, zhi, z, X)
         wk = sqp_workspace(N, P)
         build_constraints(x0[2], vlo, vhi, zlo, zhi, P, wk[5], wk[6])
-        st, J, it = sqp_ws(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk)
+        st, J, it = sqp_ws(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk, np.inf)
         if P[P_STEER_START] > 0.5 and max_iter > 0 and (
                 st != ST_OK or P[P_STEER_GATE] < 0.5 or second_start_pays(z, X, xr, new_ref, zlo, zhi, P)):
             starts[bi] = 2
             z2 = np.empty(n)
             steer_bound_start(x0, xr, uprev, z, P, vlo, vhi, zlo, zhi, z2, X)
-            st2, J2, it2 = sqp_ws(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk)
+            st2, J2, it2 = sqp_ws(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk,
+                                  J if st == ST_OK else np.inf)
             it += it2
             if st2 == ST_OK and (st != ST_OK or J2 < J - _SAME_MINIMUM * (1.0 + abs(J))):
                 st = st2

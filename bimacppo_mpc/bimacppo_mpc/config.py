@@ -43,6 +43,7 @@ class FastSolverConfig:
     initial_guesses: tuple[str, ...] = setting(choices=INITIAL_GUESSES, min_length=1)
     steer_bound_start: bool
     steer_bound_gate: bool
+    second_start_cut: float | None = setting(lo=1.0)   # None: a second start always runs to convergence
     threads: int = setting(lo=0)
     parallel_min_batch: int = setting(lo=1)
 

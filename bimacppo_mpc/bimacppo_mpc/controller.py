@@ -33,6 +33,7 @@ STATUS_TEXT = {
     K.ST_NONFINITE_REF: "bad_input: non-finite reference x_ref",
     K.ST_NONFINITE_UPREV: "bad_input: non-finite previous input u_prev",
     K.ST_NONFINITE_RESULT: "solver_failed: non-finite solution",
+    K.ST_ABANDONED: "solver_failed: second start abandoned",
 }
 
 SOLVERS = ("fast", "ipopt")
@@ -87,6 +88,7 @@ def pack_params(cfg: MPCConfig) -> np.ndarray:
     P[K.P_STEER_GATE] = 1.0 if cfg.fast.steer_bound_gate else 0.0
     P[K.P_STEER_RATE] = cfg.steer_rate_max if cfg.steer_rate_max is not None else 0.0
     P[K.P_JERK] = cfg.jerk_max if cfg.jerk_max is not None else 0.0
+    P[K.P_CUT] = cfg.fast.second_start_cut if cfg.fast.second_start_cut is not None else 0.0
     return P
 
 
