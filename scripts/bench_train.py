@@ -28,12 +28,16 @@ EXT = ROOT / "bimacppo_learning" / "bimacppo_learning" / "config" / "env_extende
 # envs x 1024 steps per update, every torch op on one thread); "batched" keeps 2048 samples per
 # update (16 x 128), in this process or split over 2 worker processes. All rows update on one
 # thread: on a machine shared with other jobs, extra update threads can cost more than they give.
+BATCHED = {"vector": "batched", "num_envs": 16, "rollout_steps": 128, "batch_workers": 1, "update_threads": 1}
 CONFIGS = {
     "per-env": {"vector": "async", "num_envs": 2, "rollout_steps": 1024, "update_threads": 1},
-    "batched": {"vector": "batched", "num_envs": 16, "rollout_steps": 128, "batch_workers": 1, "update_threads": 1},
-    "batched-2proc": {"vector": "batched", "num_envs": 16, "rollout_steps": 128, "batch_workers": 2,
-                      "update_threads": 1},
+    "batched": BATCHED,
+    "batched-2proc": {**BATCHED, "batch_workers": 2},
+    "batched-uncut": BATCHED,
 }
+# name -> overrides of the packaged mpc.yaml: "batched-uncut" runs every second NMPC start to
+# convergence (fast.second_start_cut: null), the solver as it was before the cut
+MPC = {"batched-uncut": {"fast": {"second_start_cut": None}}}
 
 CHILD = r"""
 import json, resource, sys, time
@@ -41,13 +45,15 @@ from bimacppo_curriculum import make_scheduler
 from bimacppo_learning.cli import make_env
 from bimacppo_learning.ppo_config import load_config
 from bimacppo_learning.trainer import Trainer
+from bimacppo_mpc import MPCConfig
 from bimacppo_planner.decision import EnvConfig
 args = json.loads(sys.argv[1])
 env_cfg = EnvConfig.load(args["env_config"])
 pcfg, tcfg = load_config(train={**args["train"], "seed": args["seed"], "progress_bar": False, "tensorboard": False})
 sched = make_scheduler("bimab", seed=args["seed"], total_episodes=args["episodes"])
 t0 = time.perf_counter()
-res = Trainer(make_env("dual_lane_4way", env_cfg, "fast"), sched, args["run_dir"], pcfg, tcfg).train(args["episodes"])
+mpc = MPCConfig.load().replace(**args["mpc"])
+res = Trainer(make_env("dual_lane_4way", env_cfg, "fast", mpc_config=mpc), sched, args["run_dir"], pcfg, tcfg).train(args["episodes"])
 wall = time.perf_counter() - t0
 recs = [json.loads(l) for l in open(res.history_path)]
 ticks = sum(r["ticks"] for r in recs)
@@ -61,7 +67,7 @@ print("RESULT " + json.dumps({"wall": wall, "episodes": res.episodes, "decisions
 
 def run_one(name: str, episodes: int, seed: int, env_config: str) -> dict:
     with tempfile.TemporaryDirectory(prefix=f"bench-{name}-") as tmp:
-        arg = json.dumps({"train": CONFIGS[name], "episodes": episodes, "seed": seed,
+        arg = json.dumps({"train": CONFIGS[name], "mpc": MPC.get(name, {}), "episodes": episodes, "seed": seed,
                           "env_config": env_config, "run_dir": tmp})
         out = subprocess.run([sys.executable, "-c", CHILD, arg], capture_output=True, text=True,
                              env={**os.environ, "TQDM_DISABLE": "1"})
@@ -92,7 +98,7 @@ def main() -> int:
     base = rows[0][1]
     print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
           f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}\n")
-    print("| path | train config | episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC s (solve_batch time, summed over processes) | "
+    print("| path | train config (and NMPC overrides) | episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC s (solve_batch time, summed over processes) | "
           "policy s | update s | other s | peak RSS main / largest worker (MiB) | success, last 200 |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows:
@@ -101,7 +107,8 @@ def main() -> int:
         eps = r["episodes"] / r["wall"]
         spread = f" ({min(r['eps_all']):.1f}-{max(r['eps_all']):.1f})" if len(r["eps_all"]) > 1 else ""
         mpc = f"{tm['mpc_cpu']:.1f}" if "mpc_cpu" in tm else "-"
-        print(f"| {name} | {json.dumps(CONFIGS[name])} | {eps:.1f}{spread} | {r['ticks'] / r['wall']:.0f} | "
+        conf = json.dumps(CONFIGS[name]) + (f" NMPC {json.dumps(MPC[name])}" if name in MPC else "")
+        print(f"| {name} | {conf} | {eps:.1f}{spread} | {r['ticks'] / r['wall']:.0f} | "
               f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x | {tm['env']:.1f} | "
               f"{mpc} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | "
               f"{r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | {100 * r['success']:.0f}% |")

@@ -196,3 +196,10 @@ def test_the_cut_is_validated():
     for bad in (0.5, -1.0, "2"):
         with pytest.raises(ValueError, match="fast.second_start_cut"):
             CFG.replace(fast={"second_start_cut": bad})
+
+
+def test_the_uncut_overlay_changes_the_cut_alone():
+    from bimacppo_mpc.config import CONFIG_DIR
+    uncut = MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml")
+    assert uncut.fast.second_start_cut is None
+    assert uncut.replace(fast={"second_start_cut": CFG.fast.second_start_cut}).to_dict() == CFG.to_dict()
