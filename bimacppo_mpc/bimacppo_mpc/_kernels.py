@@ -439,11 +439,7 @@ def cholesky(A, Lc, m, min_pivot):
 
 @njit(cache=True)
 def fwd_solve(Lc, b, x, m):
-    for i in range(m):
-        t = b[i]
-        for k in range(i):
-            t -= Lc[i, k] * x[k]
-        x[i] = t / Lc[i, i]
+    fwd_solve_from(Lc, b, x, m, 0)
 
 
 @njit(cache=True)
@@ -750,7 +746,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
     start; np.inf otherwise). The run stops with ST_ABANDONED at the first iterate whose cost,
     less second_start_cut times the QP's predicted decrease, is still above j_bar: the local
     model says that even a step that many times better than predicted leaves it the dearer
-    result (docs/mpc.md, "Two starts")."""
+    result (docs/mpc.md, "the cut")."""
     N = z.size // 2
     n = 2 * N
     (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn) = wk
