@@ -25,6 +25,7 @@ ENV = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get("AMENT_PREFIX_PATH", sys
 SCENARIO = Scenario(n_sv=2, task="straight", seed=1)
 POLICY_SEED = 1   # an untrained policy that changes lanes on SCENARIO (so the return has both terms)
 EPISODE_TIMEOUT = 45.0
+DISCOVERY_TIMEOUT = 30.0   # a new process imports torch / numba before its node exists
 WORLD_TOPICS = (I.TOPIC_CLOCK, I.TOPIC_EGO_ODOM, I.TOPIC_OBJECTS, I.TOPIC_GOAL, I.TOPIC_RESULT)
 
 
@@ -135,6 +136,12 @@ def _collect(node, until, timeout):
     return until()
 
 
+def _await_publisher(node, sub, timeout=DISCOVERY_TIMEOUT):
+    """Wait until ``sub`` is matched with a publisher (discovery of a new process)."""
+    assert _collect(node, lambda: sub.get_publisher_count() > 0, timeout), \
+        f"no publisher on {sub.topic_name} after {timeout} s"
+
+
 def _planner(policy_file, *extra):
     return _start("-m", "bimacppo_planner.ros.planner_node", "--ros-args",
                   "-p", f"policy_path:={policy_file}", *extra)
@@ -156,18 +163,24 @@ def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_
         node.create_subscription(I.DiagnosticStatus, I.TOPIC_PLANNER_RESULT,
                                  lambda m: returns.append(I.status_to_result(m)), I.RESULT_QOS),
     ]
-    procs = [_planner(policy_file), _start("-m", "bimacppo_mpc.ros.controller_node")]
-    time.sleep(1.0)  # let the others come up; the world's resend covers any late joiner anyway
-    procs.append(_start("-m", "bimacppo_sim.ros.world_node", "--ros-args", "-p", "mode:=lockstep",
-                        "-p", f"scenario.n_sv:={SCENARIO.n_sv}", "-p", f"scenario.task:={SCENARIO.task}",
-                        "-p", f"scenario.seed:={SCENARIO.seed}"))
+    # Both results are volatile, so this observer is matched with each of their publishers
+    # before the episode can end: planner, world, and only then the controller (the world
+    # cannot step before the controller answers, so no result exists before the last start).
+    procs = [_planner(policy_file)]
     try:
+        _await_publisher(node, subs[2])
+        procs.append(_start("-m", "bimacppo_sim.ros.world_node", "--ros-args", "-p", "mode:=lockstep",
+                            "-p", f"scenario.n_sv:={SCENARIO.n_sv}", "-p", f"scenario.task:={SCENARIO.task}",
+                            "-p", f"scenario.seed:={SCENARIO.seed}"))
+        _await_publisher(node, subs[1]), _await_publisher(node, subs[0])
+        procs.append(_start("-m", "bimacppo_mpc.ros.controller_node"))
         ok = _collect(node, lambda: bool(results) and bool(returns), EPISODE_TIMEOUT)
     finally:
         outs = _stop_all(procs)
         for s in subs:
             node.destroy_subscription(s)
-    assert ok, "no episode result / return; process output:\n" + "\n---\n".join(outs)
+    assert ok, (f"no {'episode result' if not results else 'planner return'}; process output:\n"
+                + "\n---\n".join(outs))
     assert all(p.returncode == 0 for p in procs), outs
     res = results[0]
     assert res.outcome == ref_outcome
@@ -265,6 +278,11 @@ def test_player_drives_planner_and_controller(node, demo_mcap, policy_file, rate
     sim_time = ("-p", "use_sim_time:=true")
     procs = [_planner(policy_file, *sim_time),
              _start("-m", "bimacppo_mpc.ros.controller_node", "--ros-args", *sim_time)]
+    try:   # this observer hears the controller before any tick exists
+        _await_publisher(node, sub)
+    except AssertionError:
+        _stop_all(procs)
+        raise
     # the player starts once planner and controller are matched on /ego/odom and /objects
     player = _start("-m", "bimacppo_bag.player", str(mcap), "--ros-args", "-p", f"rate:={rate}",
                     "-p", "timing:=clock", "-p", "as_world:=true", "-p", "wait_subscribers:=2",
