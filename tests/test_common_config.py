@@ -172,6 +172,44 @@ def test_saved_dicts_round_trip_and_missing_keys_take_the_packaged_defaults(pack
     assert str(err) == "f.yaml: key 'a.b' must be odd" and isinstance(err, ValueError)
 
 
+def test_a_record_reads_a_missing_key_as_what_its_absence_meant(packaged):
+    """A saved record lacks the keys added after it: one that declares ``absent`` takes that
+    value (the behaviour before the key), the others the packaged default; a user's overlay
+    always takes the packaged default; unknown keys and bad values are refused as in a file."""
+    pk = packaged()
+
+    @config_class(pk, "inner")
+    class Inner:
+        gain: float = setting(lo=0.0, hi=1.0, lo_open=True, absent=0.25)
+        flag: bool
+        table: dict[str, tuple[int, ...]] = setting(keys=("left", "right"), length=2, lo=0)
+
+    @config_class(pk)
+    class Outer:
+        level: int = setting(lo=0, hi=10)
+        name: str = setting(choices=("base", "other"))
+        speeds: tuple[float, ...] = setting(lo=0.0, min_length=1)
+        limit: float | None = setting(lo=0.0, absent=9.0)
+        inner: Inner
+
+    saved = to_dict(Outer(level=4, limit=5.0))
+    assert config.from_record(Outer, saved) == Outer(level=4, limit=5.0)     # a full record reads back
+    old = {"level": 4, "name": "base", "speeds": [0.0, 2.0], "inner": {"flag": False, "table": saved["inner"]["table"]}}
+    rec = config.from_record(Outer, old, "run.json")
+    assert (rec.limit, rec.inner.gain, rec.inner.flag, rec.level) == (9.0, 0.25, False, 4)
+    assert config.from_record(Outer, {"level": 2}).inner.gain == 0.25        # a section it predates
+    over = from_dict(Outer, old)                                             # an overlay: packaged defaults
+    assert (over.limit, over.inner.gain) == (None, 0.5)
+    assert config.from_record(Outer, {"limit": 7.0}).limit == 7.0            # a recorded value wins
+    assert config.from_record(Outer, {"limit": None}).limit is None
+    with pytest.raises(ConfigError, match=r"^run\.json: unknown key 'inner\.gian' \(did you mean 'gain'\?\)"):
+        config.from_record(Outer, {"inner": {"gian": 0.3}}, "run.json")
+    with pytest.raises(ConfigError, match=r"^run\.json: key 'level' must be in \[0, 10\], got 11"):
+        config.from_record(Outer, {"level": 11}, "run.json")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        config.from_record(Outer, [1, 2], "run.json")
+
+
 def test_construction_and_replace_run_the_same_checks(packaged):
     Outer, Inner = declare(packaged())
     with pytest.raises(ConfigError, match=r"^Inner: key 'gain' must be in"):

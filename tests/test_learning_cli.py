@@ -361,11 +361,14 @@ def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_p
         other.write_text("horizon: 12\n")
         assert resolve_mpc_config(loaded, other).horizon == 12           # --mpc-config wins
     # a file that records none (the clone, written before runs recorded theirs): the packaged
-    # mpc.yaml (None); the shipped default records the packaged bounded controller
+    # mpc.yaml (None); the shipped default was trained before the second-start cut existed, so
+    # its record means the packaged bounded controller without the cut
+    from bimacppo_mpc.config import CONFIG_DIR
     _, clone, _ = resolve_policy(REPO / "bimacppo_planner/bimacppo_planner/policies/bimacppo_dual_lane_clone.pt")
     assert "mpc_config" not in clone.meta and resolve_mpc_config(clone) is None
     _, shipped, _ = resolve_policy(None)
-    assert resolve_mpc_config(shipped).to_dict() == MPCConfig.load().to_dict()
+    assert "second_start_cut" not in shipped.meta["mpc_config"]["fast"]
+    assert resolve_mpc_config(shipped).to_dict() == MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml").to_dict()
     # end to end: a policy file's cells run its recorded controller unless told otherwise
     from bimacppo_learning.evaluate import evaluate
     from bimacppo_mpc.config import DEFAULT_PATH

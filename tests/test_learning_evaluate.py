@@ -70,11 +70,12 @@ def test_an_object_with_predict_or_act_is_evaluated_like_its_file():
     # an object acts by its own act/predict (the argmax), whatever selection its file records
     from_file = ev.evaluate(path, workers=1, random_row=False, action_selection="argmax", **CELL)
     wrapped = PredictPolicy(load_policy(path))
-    # an object carries no env config: it runs on the one given (here the file's, which differs
-    # from the packaged default that an object gets otherwise)
+    # an object carries no env or NMPC config: it runs on the ones given (here the file's; its
+    # env config differs from the packaged default that an object gets otherwise)
     cfg = env_config_of(load_policy(path))
     assert cfg != EnvConfig.load()
-    from_predict = ev.evaluate(wrapped, workers=1, random_row=False, env_config=cfg, **CELL)
+    mpc = ev.resolve_mpc_config(load_policy(path))
+    from_predict = ev.evaluate(wrapped, workers=1, random_row=False, env_config=cfg, mpc_config=mpc, **CELL)
     from_act = ev.evaluate(load_policy(path), workers=1, random_row=False, **CELL)
     assert _outcomes(from_file) == _outcomes(from_predict) == _outcomes(from_act)
     assert wrapped.calls and all(wrapped.calls)          # asked for its deterministic action
@@ -107,7 +108,8 @@ def test_sampled_actions_are_the_trained_distribution_seeded_per_episode_and_rep
             for w, s in ((1, 5), (2, 5), (1, 6))]
     assert _outcomes(runs[0]) == _outcomes(runs[1])               # same seed: same run, any worker count
     reference = CountingSampled(load_policy(path), 5)
-    by_hand = ev.evaluate(reference, workers=1, random_row=False, env_config=cfg, **cell)
+    by_hand = ev.evaluate(reference, workers=1, random_row=False, env_config=cfg,
+                          mpc_config=ev.resolve_mpc_config(load_policy(path)), **cell)
     assert _outcomes(by_hand) == _outcomes(runs[0])
     assert reference.off_argmax > 0                                 # sampling is not the argmax
     assert _outcomes(runs[2]) != _outcomes(runs[0])                # another seed draws other actions
@@ -126,7 +128,8 @@ def test_random_row_is_seeded_on_the_same_scenarios_and_shown_in_every_table(tmp
     # the same baseline as evaluating the random policy itself in this process: same seeds and actions
     ev._RANDOM_CACHE.clear()
     alone = ev.evaluate(ev.RandomPolicy((5, 5, 3), seed=0), workers=1, random_row=False,
-                        env_config=env_config_of(load_policy(None)), **CELL)
+                        env_config=env_config_of(load_policy(None)),
+                        mpc_config=ev.resolve_mpc_config(load_policy(None)), **CELL)
     assert _outcomes(alone)[0][1:] == _outcomes(res)[1][1:]
     md = ev.to_markdown(res, "t")
     assert "| straight |" in md and "| straight, random policy |" in md
@@ -216,7 +219,8 @@ def test_median_actions_are_the_median_policy_and_named_in_the_table(capsys):
     cell = {**CELL, "n_svs": [3], "episodes": 2}
     cfg = env_config_of(load_policy(path))
     by_file = ev.evaluate(path, workers=1, random_row=False, action_selection="median", **cell)
-    by_hand = ev.evaluate(MedianPolicy(load_policy(path)), workers=1, random_row=False, env_config=cfg, **cell)
+    by_hand = ev.evaluate(MedianPolicy(load_policy(path)), workers=1, random_row=False, env_config=cfg,
+                          mpc_config=ev.resolve_mpc_config(load_policy(path)), **cell)
     assert _outcomes(by_file) == _outcomes(by_hand)
     with pytest.raises(ev.EvaluationError, match="needs a policy file"):
         ev.evaluate(load_policy(path), workers=1, random_row=False, action_selection="median", **cell)

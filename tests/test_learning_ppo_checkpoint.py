@@ -243,6 +243,15 @@ def test_the_recorded_mpc_config_reads_back_and_missing_is_unknown():
     assert back.to_dict() == cfg.to_dict() and back.source == "x.pt (run mpc_config)"
     partial = {k: v for k, v in cfg.to_dict().items() if k != "jerk_max"}  # a key added after it was saved
     assert mpc_config_of({"mpc_config": partial}, "x.pt").jerk_max == MPCConfig.load().jerk_max
+    # a key that declares what its absence meant: a run recorded before the second-start cut ran
+    # without it, so its recorded controller is the uncut one, not today's default
+    before_cut = cfg.to_dict()
+    del before_cut["fast"]["second_start_cut"]
+    assert MPCConfig.load().fast.second_start_cut is not None
+    assert mpc_config_of({"mpc_config": before_cut}, "x.pt").fast.second_start_cut is None
+    from bimacppo_mpc.config import CONFIG_DIR
+    uncut = MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml").replace(horizon=12, steer_rate_max=None)
+    assert mpc_config_of({"mpc_config": before_cut}, "x.pt").to_dict() == uncut.to_dict()
     with pytest.raises(CheckpointError, match=r"^x\.pt: run metadata mpc_config: unknown key 'horizn'"):
         mpc_config_of({"mpc_config": {"horizn": 12}}, "x.pt")
     with pytest.raises(CheckpointError, match=r"^x\.pt: run metadata mpc_config: key 'horizon'"):

@@ -12,6 +12,11 @@ The rules (docs/architecture.md, "Configuration"):
   value replaces. Dotted keys (``{"reward.step": -0.1}``) address nested keys. A saved dict that
   lists every key (a checkpoint) loads the same way, so a key added since it was saved takes the
   packaged default.
+* **A record is read as what it meant.** A config saved with a run (:func:`from_record`) lists
+  every key it had; a key added since that changes behaviour declares ``setting(absent=...)``,
+  the value that reproduces what the code did before the key existed, so an old run's recorded
+  controller is not misread as today's default. A key without ``absent`` takes the packaged
+  default there as well.
 * **Nothing is silently ignored.** An unknown key is refused with the closest known one
   suggested; a wrong type or an out-of-range value is refused. Every message names the file (or
   the dict) that set the key and the dotted key, e.g.
@@ -37,9 +42,10 @@ from typing import Any, Mapping, Union
 import yaml
 
 __all__ = ["ConfigError", "Packaged", "config_class", "setting", "runtime", "invalid", "load", "from_dict",
-           "build", "read_yaml", "to_dict", "is_config_class"]
+           "from_record", "build", "read_yaml", "to_dict", "is_config_class"]
 
 _META = "bimacppo_common.config"
+_UNSET = object()     # a key that declares no ``absent`` value
 
 
 class ConfigError(ValueError):
@@ -77,16 +83,19 @@ class _Rule:
     length: int | None = None
     min_length: int | None = None
     keys: tuple | None = None
+    absent: Any = _UNSET
 
 
 def setting(*, lo: float | None = None, hi: float | None = None, lo_open: bool = False, hi_open: bool = False,
-            choices=None, length: int | None = None, min_length: int | None = None, keys=None) -> Any:
+            choices=None, length: int | None = None, min_length: int | None = None, keys=None,
+            absent: Any = _UNSET) -> Any:
     """Declare a key's allowed values (its type comes from the annotation, its default from the
     packaged YAML). ``lo``/``hi`` (``*_open``: exclusive) and ``choices`` apply to numbers and
     strings, also to each item of a list or dict value; ``length``/``min_length`` to lists;
-    ``keys`` is the exact key set of a dict value."""
+    ``keys`` is the exact key set of a dict value. ``absent`` is the value a saved record
+    without this key means (:func:`from_record`): what the code did before the key existed."""
     rule = _Rule(lo, hi, lo_open, hi_open, None if choices is None else tuple(choices), length, min_length,
-                 None if keys is None else tuple(keys))
+                 None if keys is None else tuple(keys), absent)
     return dataclasses.field(metadata={_META: rule})
 
 
@@ -435,6 +444,34 @@ def from_dict(cls, data: Mapping, source: str = "<dict>"):
     if not isinstance(data, Mapping):
         raise ConfigError(f"expected a mapping of keys to values, got {type(data).__name__}", source=source)
     return build(cls, (data, source))
+
+
+def _fill_absent(cls, data: Mapping) -> dict:
+    """``data`` with every key it lacks that declares an ``absent`` value set to that value
+    (sections too: a record made before a section existed lacks all of its keys)."""
+    out = dict(data)
+    for name, f in cls.__config_spec__.fields.items():
+        typ = _unoptional(f.type)[0]
+        if is_config_class(typ):
+            sub = out.get(name, {})
+            if isinstance(sub, Mapping):      # a recorded None (an optional section) stays None
+                filled = _fill_absent(typ, sub)
+                if filled or name in out:
+                    out[name] = filled
+        elif name not in out and f.rule.absent is not _UNSET:
+            out[name] = copy.deepcopy(f.rule.absent)
+    return out
+
+
+def from_record(cls, data: Mapping, source: str = "<record>"):
+    """A config saved with a run (every key it had then), read as what it meant: a key it lacks
+    takes its declared ``absent`` value (the behaviour before that key existed), else the
+    packaged default; an unknown key or a bad value is a ConfigError like any file's."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"expected a mapping of keys to values, got {type(data).__name__}", source=source)
+    data = _expand(data, source, ())
+    _check_keys(cls, data, (), source)
+    return build(cls, (_fill_absent(cls, data), source))
 
 
 def to_dict(obj) -> dict:

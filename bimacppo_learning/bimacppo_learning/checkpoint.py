@@ -83,8 +83,9 @@ def run_meta_of(d: Mapping[str, Any], path: str | os.PathLike) -> dict:
 
 
 def mpc_config_of(meta: Mapping[str, Any], path: str | os.PathLike):
-    """The NMPC config a run was trained with (its run metadata's ``mpc_config``, read as an
-    overlay of the packaged mpc.yaml so that a key added since takes its default), or None when
+    """The NMPC config a run was trained with (its run metadata's ``mpc_config``, read as a record:
+    a key added since takes the value that reproduces the controller before it, see
+    ``MPCConfig.from_record``), or None when
     the metadata records none (a file written before runs recorded it: the controller is unknown).
     A recorded config that is no longer valid is a CheckpointError naming the file and key."""
     raw = meta.get("mpc_config")
@@ -93,7 +94,7 @@ def mpc_config_of(meta: Mapping[str, Any], path: str | os.PathLike):
     from bimacppo_mpc import MPCConfig
 
     try:
-        cfg = MPCConfig.from_dict(raw, source="mpc_config")
+        cfg = MPCConfig.from_record(raw, source="mpc_config")
     except ValueError as exc:      # "<path>: run metadata mpc_config: key 'horizon' must be ..."
         raise CheckpointError(path, f"run metadata {exc}") from None
     return dataclasses.replace(cfg, source=f"{path} (run mpc_config)")

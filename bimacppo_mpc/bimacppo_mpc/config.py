@@ -43,7 +43,8 @@ class FastSolverConfig:
     initial_guesses: tuple[str, ...] = setting(choices=INITIAL_GUESSES, min_length=1)
     steer_bound_start: bool
     steer_bound_gate: bool
-    second_start_cut: float | None = setting(lo=1.0)   # None: a second start always runs to convergence
+    # None: a second start always runs to convergence (runs recorded before the key ran that way)
+    second_start_cut: float | None = setting(lo=1.0, absent=None)
     threads: int = setting(lo=0)
     parallel_min_batch: int = setting(lo=1)
 
@@ -112,6 +113,12 @@ class MPCConfig:
     def from_dict(cls, data: Mapping[str, Any], source: str = "<dict>") -> "MPCConfig":
         """A dict in the YAML's layout (all keys, or only those it changes) over the defaults."""
         return dataclasses.replace(config.from_dict(cls, data, source), source=source)
+
+    @classmethod
+    def from_record(cls, data: Mapping[str, Any], source: str = "<record>") -> "MPCConfig":
+        """The config a run recorded, read as the controller it ran: a key added since takes the
+        value that reproduces the code before it (``setting(absent=...)``), else its default."""
+        return dataclasses.replace(config.from_record(cls, data, source), source=source)
 
     def replace(self, **changes) -> "MPCConfig":
         """A validated copy; nested sections accept dicts, e.g. ``cfg.replace(fast={"max_iter": 0})``."""
