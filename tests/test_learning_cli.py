@@ -225,8 +225,8 @@ def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
         ([str(corrupt)], "corrupt.pt: not a readable torch file"),
         ([str(ckpt), "--env-config", str(env_yaml("observation:\n  max_sv: 2\n"))],
          "its agent takes observations of size 16 and actions nvec=[5, 5, 3]; this run's env config gives 12"),
-        ([str(ckpt), "--env-config", str(env_yaml("observation:\n  sv_clip: 30.0\nreward:\n  step: -0.1\n"))],
-         "observation.sv_clip: 7.5 != 30.0; reward.step: -0.02 != -0.1"),
+        ([str(ckpt), "--env-config", str(env_yaml("observation:\n  sv_clip: 30.0\naction:\n  decision_every: 2\n"))],
+         "action.decision_every: 1 != 2; observation.sv_clip: 7.5 != 30.0; checkpoint"),
         ([str(run / "policy.pt")], "expected 'bimacppo-ppo-checkpoint'"),
     ]
     for k, (extra, says) in enumerate(cases):
@@ -236,6 +236,25 @@ def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
         assert rc == 2, extra
         assert says in _one_error_line(capsys.readouterr().err, "bimacppo-train"), extra
         assert not out.exists()
+
+
+def test_a_fine_tune_may_change_the_reward_but_a_resume_may_not(trained, tmp_path, env_yaml, capsys):
+    """The reward is the task a run trains for: a fine-tune (--init-policy) chooses its own and
+    records it; a resume continues one run, so another reward is refused there."""
+    _, cfg, run = trained
+    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
+    terminal = env_yaml("reward:\n  timeout_mode: truncate\n  step: -0.1\n")
+    out = tmp_path / "tuned"
+    assert train_main(["--episodes", "2", "--run-dir", str(out), "--ppo-config", str(cfg), "--no-progress",
+                       "--init-policy", str(ckpt), "--env-config", str(terminal)]) == 0
+    reward = json.loads((out / "run.json").read_text())["env_config"]["reward"]
+    assert (reward["timeout_mode"], reward["step"]) == ("truncate", -0.1)
+    before = _snapshot(run)
+    assert train_main(["--episodes", "8", "--run-dir", str(run), "--ppo-config", str(cfg), "--no-progress",
+                       "--resume", "--env-config", str(terminal)]) == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "reward.step: -0.02 != -0.1" in line and "reward.timeout_mode" in line
+    assert _snapshot(run) == before
 
 
 def test_report_refuses_a_bad_window_on_one_line(trained, tmp_path, capsys):

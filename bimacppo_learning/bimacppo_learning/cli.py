@@ -79,12 +79,14 @@ def fail(prog: str, message: Any) -> int:
 
 
 def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_cfg: EnvConfig,
-                          mpc_cfg=None) -> str | None:
+                          mpc_cfg=None, sections=("observation", "action", "reward")) -> str | None:
     """Why a checkpoint cannot continue (--resume) or start (--init-policy) a run with ``env_cfg``
-    and the NMPC ``mpc_cfg``: another observation or action size, another env config (a checkpoint
-    that records none was made with the packaged one, the rule deployment follows) or another MPC
-    config (one that records none is of unknown controller: not compared, a warning); None if it
-    fits. ``mpc_cfg`` None skips the MPC comparison."""
+    and the NMPC ``mpc_cfg``: another observation or action size, another env config in one of
+    ``sections`` (a checkpoint that records none was made with the packaged one, the rule
+    deployment follows) or another MPC config (one that records none is of unknown controller:
+    not compared, a warning); None if it fits. ``mpc_cfg`` None skips the MPC comparison. A
+    resume compares every section (it continues one run); a fine-tune only what the policy sees
+    and does, observation and action, because its reward is the new task's to choose."""
     from .checkpoint import CheckpointError, config_differences, mpc_config_of
 
     if (int(obs_dim), tuple(int(n) for n in nvec)) != (env_cfg.obs_dim, tuple(env_cfg.nvec)):
@@ -95,7 +97,8 @@ def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_c
         saved = EnvConfig.load() if raw is None else EnvConfig.from_dict(raw, where=f"{path} (run env_config)")
     except ConfigError as exc:
         return str(exc)
-    diff = config_differences(saved.to_dict(), env_cfg.to_dict())
+    diff = config_differences({k: v for k, v in saved.to_dict().items() if k in sections},
+                              {k: v for k, v in env_cfg.to_dict().items() if k in sections})
     if diff:
         return (f"{path}: was trained with another env config ({'; '.join(diff)}; checkpoint != this run): "
                 "pass the --env-config it was trained with")
@@ -169,7 +172,8 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
             path = args.init_policy
             meta = run_meta_of(load_checkpoint(path), path)
             agent = load_agent(path)
-            why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg, mpc_cfg)
+            why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg, mpc_cfg,
+                                        sections=("observation", "action"))
             if why:
                 return why, None
     except CheckpointError as exc:
