@@ -225,8 +225,8 @@ def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
         ([str(corrupt)], "corrupt.pt: not a readable torch file"),
         ([str(ckpt), "--env-config", str(env_yaml("observation:\n  max_sv: 2\n"))],
          "its agent takes observations of size 16 and actions nvec=[5, 5, 3]; this run's env config gives 12"),
-        ([str(ckpt), "--env-config", str(env_yaml("observation:\n  sv_clip: 30.0\naction:\n  decision_every: 2\n"))],
-         "action.decision_every: 1 != 2; observation.sv_clip: 7.5 != 30.0; checkpoint"),
+        ([str(ckpt), "--env-config", str(env_yaml("observation:\n  sv_clip: 30.0\nreward:\n  step: -0.1\n"))],
+         "observation.sv_clip: 7.5 != 30.0; reward.step: -0.02 != -0.1"),
         ([str(run / "policy.pt")], "expected 'bimacppo-ppo-checkpoint'"),
     ]
     for k, (extra, says) in enumerate(cases):
@@ -238,15 +238,25 @@ def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
         assert not out.exists()
 
 
-def test_a_fine_tune_may_change_the_reward_but_a_resume_may_not(trained, tmp_path, env_yaml, capsys):
-    """The reward is the task a run trains for: a fine-tune (--init-policy) chooses its own and
-    records it; a resume continues one run, so another reward is refused there."""
+def test_a_fine_tune_may_change_the_reward_when_told_but_a_resume_may_not(trained, tmp_path, env_yaml, capsys):
+    """The reward is the task a run trains for: a fine-tune given --fine-tune-reward trains with
+    its own and records it; without the flag, and on a resume (one run continued), another
+    reward is refused; another observation is refused even with the flag."""
     _, cfg, run = trained
     ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
     terminal = env_yaml("reward:\n  timeout_mode: truncate\n  step: -0.1\n")
     out = tmp_path / "tuned"
-    assert train_main(["--episodes", "2", "--run-dir", str(out), "--ppo-config", str(cfg), "--no-progress",
-                       "--init-policy", str(ckpt), "--env-config", str(terminal)]) == 0
+    base = ["--episodes", "2", "--ppo-config", str(cfg), "--no-progress", "--init-policy", str(ckpt)]
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(terminal)]) == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "reward.step: -0.02 != -0.1" in line and "--fine-tune-reward" in line and not out.exists()
+    seen = env_yaml("observation:\n  sv_clip: 30.0\nreward:\n  step: -0.1\n")
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(seen), "--fine-tune-reward"]) == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "observation.sv_clip: 7.5 != 30.0; checkpoint" in line and "reward" not in line
+    assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "x"), "--fine-tune-reward"]) == 2
+    assert "needs --init-policy" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(terminal), "--fine-tune-reward"]) == 0
     reward = json.loads((out / "run.json").read_text())["env_config"]["reward"]
     assert (reward["timeout_mode"], reward["step"]) == ("truncate", -0.1)
     before = _snapshot(run)

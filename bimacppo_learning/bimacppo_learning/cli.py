@@ -55,6 +55,9 @@ def _train_parser() -> argparse.ArgumentParser:
                    help="YAML for the scheduler (default: the packaged one for that curriculum)")
     p.add_argument("--init-policy", type=Path, default=None,
                    help="start from this training checkpoint (fine-tuning, e.g. overtaking)")
+    p.add_argument("--fine-tune-reward", action="store_true",
+                   help="with --init-policy: the fine-tune trains with the reward section of --env-config; "
+                        "only observation and action must match the checkpoint's")
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast", help="NMPC solver in the loop")
     p.add_argument("--mpc-config", type=Path, default=None,
                    help="YAML overlaying bimacppo_mpc/config/mpc.yaml (lists only what it changes, e.g. "
@@ -85,8 +88,9 @@ def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_c
     ``sections`` (a checkpoint that records none was made with the packaged one, the rule
     deployment follows) or another MPC config (one that records none is of unknown controller:
     not compared, a warning); None if it fits. ``mpc_cfg`` None skips the MPC comparison. A
-    resume compares every section (it continues one run); a fine-tune only what the policy sees
-    and does, observation and action, because its reward is the new task's to choose."""
+    resume compares every section (it continues one run); a fine-tune that says so
+    (--fine-tune-reward) only what the policy sees and does, observation and action, because
+    its reward is then the new task's to choose."""
     from .checkpoint import CheckpointError, config_differences, mpc_config_of
 
     if (int(obs_dim), tuple(int(n) for n in nvec)) != (env_cfg.obs_dim, tuple(env_cfg.nvec)):
@@ -172,8 +176,10 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
             path = args.init_policy
             meta = run_meta_of(load_checkpoint(path), path)
             agent = load_agent(path)
-            why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg, mpc_cfg,
-                                        sections=("observation", "action"))
+            sections = ("observation", "action") if args.fine_tune_reward else ("observation", "action", "reward")
+            why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg, mpc_cfg, sections)
+            if why and not args.fine_tune_reward and "reward." in why:
+                why += " (--fine-tune-reward lets a fine-tune change only the reward)"
             if why:
                 return why, None
     except CheckpointError as exc:
@@ -198,6 +204,8 @@ def train_main(argv=None) -> int:
         return fail(prog, f"--episodes must be >= 1, got {args.episodes}")
     if not 0 <= args.slow_svs <= 3:
         return fail(prog, f"--slow-svs must be in 0..3 (at most N_sv^max SVs), got {args.slow_svs}")
+    if args.fine_tune_reward and args.init_policy is None:
+        return fail(prog, "--fine-tune-reward needs --init-policy (a resume keeps its run's reward)")
     try:
         env_cfg = EnvConfig.load(args.env_config)
         mpc_cfg = MPCConfig.load(args.mpc_config)
