@@ -376,8 +376,9 @@ def test_a_checkpoint_without_a_recorded_mpc_config_is_not_compared_but_warned_a
                                                                               MPCConfig.load())
 
 
-def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_path):
+def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_path, capsys):
     from bimacppo_mpc import MPCConfig
+    from bimacppo_mpc.config import DEFAULT_PATH
     from conftest import REPO
 
     from bimacppo_learning.evaluate import resolve_mpc_config, resolve_policy
@@ -398,9 +399,16 @@ def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_p
     _, shipped, _ = resolve_policy(None)
     assert "second_start_cut" not in shipped.meta["mpc_config"]["fast"]
     assert resolve_mpc_config(shipped).to_dict() == MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml").to_dict()
+    # the table says which controller ran: the record, a --mpc-config, or the packaged one
+    common = ["--episodes", "1", "--n-sv", "0", "--tasks", "straight", "--workers", "1", "--no-random-row"]
+    for extra, says in (([], "(run mpc_config) (fast.second_start_cut: None)"),
+                        (["--mpc-config", str(DEFAULT_PATH)], f"NMPC: {DEFAULT_PATH} (fast.second_start_cut: 2.0)"),
+                        ([str(REPO / "bimacppo_planner/bimacppo_planner/policies/bimacppo_dual_lane_clone.pt")],
+                         "(packaged; the policy records none)")):
+        assert evaluate_main([*extra, *common]) == 0
+        assert says in capsys.readouterr().out, extra
     # end to end: a policy file's cells run its recorded controller unless told otherwise
     from bimacppo_learning.evaluate import evaluate
-    from bimacppo_mpc.config import DEFAULT_PATH
 
     kw = dict(map_id="dual_lane_4way", n_svs=[0], tasks=[1], episodes=1, workers=1, random_row=False)
     pol = trained_unbounded / "policy.pt"

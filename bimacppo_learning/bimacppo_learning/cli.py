@@ -330,8 +330,8 @@ def evaluate_main(argv=None) -> int:
     from bimacppo_common.conventions import TASKS
 
     from .checkpoint import CheckpointError
-    from .evaluate import (EvaluationError, check_cells, default_selection, evaluate, resolve_policy, to_markdown,
-                           write_outputs)
+    from .evaluate import (EvaluationError, check_cells, default_selection, evaluate, resolve_mpc_config,
+                           resolve_policy, to_markdown, write_outputs)
 
     prog = "bimacppo-evaluate"
     if not 1 <= args.episodes <= 1000:
@@ -377,11 +377,21 @@ def evaluate_main(argv=None) -> int:
     if selection != "argmax":
         what = f"actions sampled (seed {args.sample_seed})" if selection == "sample" else "median actions"
         title = (f"{title}: " if title else "") + what
-    print(to_markdown(results, title))
+    notes = [_nmpc_note(resolve_mpc_config(loaded, args.mpc_config))]
+    print(to_markdown(results, title, notes))
     if args.out:
-        md, cs = write_outputs(results, args.out, title)
+        md, cs = write_outputs(results, args.out, title, notes)
         print(f"wrote {md} and {cs}")
     return 0
+
+
+def _nmpc_note(cfg) -> str:
+    """Which NMPC the cells ran: evaluation follows the policy's record, so say it."""
+    from bimacppo_mpc.config import DEFAULT_PATH
+
+    if cfg is None:
+        return f"NMPC: {DEFAULT_PATH} (packaged; the policy records none)"
+    return f"NMPC: {cfg.source} (fast.second_start_cut: {cfg.fast.second_start_cut})"
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -446,9 +446,10 @@ def _row(by: Mapping, t: int, n_svs: list[int]) -> list[str]:
     return cells
 
 
-def to_markdown(results: list[CellResult], title: str = "") -> str:
+def to_markdown(results: list[CellResult], title: str = "", notes: Iterable[str] = ()) -> str:
     """Table II layout: rows = task, column groups = N_sv, S / C / TO in percent; each task's
-    random-policy row (when the results hold one) right under its row."""
+    random-policy row (when the results hold one) right under its row. ``notes`` are lines
+    under the seed set (e.g. which NMPC ran)."""
     mine = [c for c in results if c.policy != RANDOM]
     rand = {(c.task, c.n_sv): c for c in results if c.policy == RANDOM}
     n_svs = sorted({c.n_sv for c in results})
@@ -456,7 +457,8 @@ def to_markdown(results: list[CellResult], title: str = "") -> str:
     head = "| task | " + " | ".join(f"N_sv={n} S / C / TO (%)" for n in n_svs) + " |"
     sep = "|---|" + "---|" * len(n_svs)
     sets = sorted({c.seed_set for c in results})
-    lines = ([f"**{title}**", ""] if title else []) + [f"scenario seeds: {' + '.join(sets)} set", "", head, sep]
+    lines = ([f"**{title}**", ""] if title else []) + [f"scenario seeds: {' + '.join(sets)} set",
+                                                        *notes, "", head, sep]
     for t in sorted({c.task for c in results}):
         if any(k[0] == t for k in by) or not rand:
             lines.append(f"| {TASKS[t]} | " + " | ".join(_row(by, t, n_svs)) + " |")
@@ -506,13 +508,14 @@ def to_csv(results: list[CellResult]) -> str:
     return buf.getvalue()
 
 
-def write_outputs(results: list[CellResult], out_prefix: str | Path, title: str = "") -> tuple[Path, Path]:
+def write_outputs(results: list[CellResult], out_prefix: str | Path, title: str = "",
+                  notes: Iterable[str] = ()) -> tuple[Path, Path]:
     """OUT.md (the table, random rows included) and OUT.csv (the policy's cells, one row per
     cell); the random policy's cells, if any, go to OUT_random.csv in the same layout."""
     out_prefix = Path(out_prefix)
     out_prefix.parent.mkdir(parents=True, exist_ok=True)
     md, cs = out_prefix.with_suffix(".md"), out_prefix.with_suffix(".csv")
-    md.write_text(to_markdown(results, title))
+    md.write_text(to_markdown(results, title, notes))
     cs.write_text(to_csv([c for c in results if c.policy != RANDOM]))
     rand = [c for c in results if c.policy == RANDOM]
     if rand:
