@@ -278,15 +278,20 @@ def test_player_drives_planner_and_controller(node, demo_mcap, policy_file, rate
     sim_time = ("-p", "use_sim_time:=true")
     procs = [_planner(policy_file, *sim_time),
              _start("-m", "bimacppo_mpc.ros.controller_node", "--ros-args", *sim_time)]
-    try:   # this observer hears the controller before any tick exists
+    try:   # this observer hears the controller, and planner and controller see each other's
+        # reference endpoints, before any tick exists: a replay is open loop, so a tick whose
+        # reference is lost to discovery is never answered
         _await_publisher(node, sub)
+        assert _collect(node, lambda: node.count_publishers(I.TOPIC_REFERENCE) > 0
+                        and node.count_subscribers(I.TOPIC_REFERENCE) > 0, DISCOVERY_TIMEOUT), \
+            f"planner and controller not both on {I.TOPIC_REFERENCE} after {DISCOVERY_TIMEOUT} s"
     except AssertionError:
         _stop_all(procs)
         raise
     # the player starts once planner and controller are matched on /ego/odom and /objects
     player = _start("-m", "bimacppo_bag.player", str(mcap), "--ros-args", "-p", f"rate:={rate}",
                     "-p", "timing:=clock", "-p", "as_world:=true", "-p", "wait_subscribers:=2",
-                    "-p", "start_delay_s:=0.5")
+                    "-p", "start_delay_s:=1.5")
     try:
         _collect(node, lambda: player.poll() is not None, 120)
         _collect(node, lambda: False, 0.5)
