@@ -223,3 +223,25 @@ def test_budget_scaling_gives_every_run_min_syncs_and_a_moving_law(name):
     np.testing.assert_allclose(laws[0], 0.25)                     # before the first sync: uniform
     assert np.abs(laws[1] - 0.25).max() > 0.05                    # the first sync (episode 100) moved it
     assert np.argmax(s.probabilities()[0]) == 3
+
+
+def test_wider_mix_overlay_changes_only_eta_and_doubles_the_floors():
+    """studies/config/curriculum_eta04.yaml (variant 12) is an overlay: eta alone differs from the
+    packaged bimab.yaml, and under a saturating reward the law sits on the doubled floors."""
+    import pathlib
+
+    from bimacppo_curriculum import BiMABConfig
+    overlay = pathlib.Path(__file__).resolve().parent.parent / "studies" / "config" / "curriculum_eta04.yaml"
+    packaged, wide = BiMABConfig.load().to_dict(), BiMABConfig.load(overlay).to_dict()
+    assert {k for k in packaged if packaged[k] != wide[k]} == {"eta"} and wide["eta"] == 0.4
+    laws = {}
+    for name, over in (("paper", None), ("wide", overlay)):
+        s = make_scheduler("bimab", seed=1, total_episodes=2000, config=over)
+        for _ in range(2000):
+            i, j = s.sample()
+            s.update(i, j, 100.0 if (i, j) == (3, 0) else 0.0)
+        laws[name] = s.probabilities()
+    for name, floor_c, floor_a in (("paper", 0.05, 0.2 / 3), ("wide", 0.10, 0.4 / 3)):
+        p_c, p_a = laws[name]
+        assert p_c.min() >= floor_c - 1e-12 and p_c.min() < floor_c + 0.02, (name, p_c)
+        assert p_a.min() >= floor_a - 1e-12, (name, p_a)
