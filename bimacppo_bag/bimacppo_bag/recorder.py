@@ -133,7 +133,7 @@ class McapRecorder(Node):
         self.declare_parameter("exclude", Parameter.Type.STRING_ARRAY)
         # Per-topic history the recorder can fall behind by before DDS drops the oldest: a lockstep
         # loop runs hundreds of ticks per second, so 1,000 is seconds of slack for a chunk write
-        # or a scheduling stall on a loaded machine (100 was a third of a second).
+        # or a scheduling stall on a loaded machine.
         self.declare_parameter("queue_depth", 1000)
         p = self.get_parameter
         path = output or p("output").value or datetime.now().strftime("bimacppo_%Y%m%d_%H%M%S.mcap")
