@@ -2,7 +2,9 @@
 import numpy as np
 
 from bimacppo_mpc import MPCConfig
-from bimacppo_mpc.bench import BenchConfig, generate_problems, main, make_route
+import pytest
+
+from bimacppo_mpc.bench import BenchConfig, generate_problems, main, make_route, throughput_row
 
 
 def test_routes_are_continuous_and_end_with_the_turned_heading():
@@ -30,8 +32,25 @@ def test_generated_problems_are_closed_loop_and_within_bounds():
 
 def test_main_writes_a_markdown_table(tmp_path, capsys):
     out = tmp_path / "r.md"
-    assert main(["--episodes", "1", "--out", str(out)]) == 0
+    assert main(["--episodes", "1", "--repeats", "2", "--out", str(out)]) == 0
     text = out.read_text()
     assert text.startswith("| metric | fast | ipopt |")
     assert "median solve time" in text and "cost gap" in text and "throughput B=64" in text
+    assert "(median of 2)" in text
     assert "median solve time" in capsys.readouterr().out
+
+
+def test_throughput_row_gives_the_median_of_the_pairs_and_their_range():
+    # one run pair lucky on 2 threads, one unlucky: the ratio is that of each pair, not of the medians
+    thr = {(8, 1): [100.0, 200.0, 150.0], (8, 2): [190.0, 300.0, 150.0]}
+    label, cells, _, ratio = throughput_row(8, (1, 2), thr, 3)
+    assert label == "solve_batch throughput B=8, 1 / 2 thread(s) [problems/s]"
+    assert cells == "150 / 190 (median of 3)"
+    assert ratio == "1.50x (1.00-1.90)"
+    assert throughput_row(8, (1,), {(8, 1): [5.0]}, 1)[1:] == ("5", "", "")
+
+
+def test_repeats_below_one_are_refused(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--episodes", "1", "--repeats", "0"])
+    assert e.value.code == 2 and "--repeats must be >= 1" in capsys.readouterr().err

@@ -7,9 +7,12 @@
 2. Both configurations then solve every recorded problem, episode by episode (warm
    starts as in closed loop, ``reset()`` at each episode start), timing each call.
 3. solve_batch throughput for several batch sizes, one episode per batch slot, on one
-   thread and on all of numba's threads (the ratio is the parallel speed-up).
+   thread and on all of numba's threads (the ratio is the parallel speed-up). Each pair of
+   runs is repeated ``batch_repeats`` times, one and all threads back to back, and the table
+   gives the median and the range: a single pass of a few hundred milliseconds moves by tens
+   of per cent when anything else wakes up on the machine.
 
-    python -m bimacppo_mpc.bench [--episodes E] [--out results.md]
+    python -m bimacppo_mpc.bench [--episodes E] [--repeats R] [--out results.md]
 
 Timings are wall-clock on a shared machine: treat them as indicative.
 """
@@ -53,6 +56,7 @@ class BenchConfig:
     start_heading_error: float
     batch_sizes: tuple
     batch_steps: int
+    batch_repeats: int
 
     @classmethod
     def load(cls, path=None) -> "BenchConfig":
@@ -71,7 +75,7 @@ class BenchConfig:
         for key in ("turn_radius", "lookahead", "ref_hold_steps", "start_speed"):
             if len(vals[key]) != 2 or vals[key][0] > vals[key][1]:
                 raise ValueError(f"{path}: {key}: must be [low, high] with low <= high")
-        for key in ("episodes", "steps", "batch_steps"):
+        for key in ("episodes", "steps", "batch_steps", "batch_repeats"):
             if not isinstance(vals[key], int) or vals[key] < 1:
                 raise ValueError(f"{path}: {key}: must be an integer >= 1")
         for kind in vals["route_kinds"]:
@@ -200,11 +204,27 @@ def _pct(a, q):
     return float(np.percentile(a, q)) if len(a) else float("nan")
 
 
+def throughput_row(B: int, threads: tuple, thr: dict, reps: int) -> tuple:
+    """The table row of batch size B: median problems/s per thread count, and the median (with
+    the range) of the per-pair ratios all threads / one thread."""
+    label = " / ".join(str(nt) for nt in threads)
+    cells = " / ".join(f"{np.median(thr[B, nt]):,.0f}" for nt in threads)
+    if reps > 1:
+        cells += " (median of " + str(reps) + ")"
+    ratio = ""
+    if len(threads) > 1:
+        r = np.asarray(thr[B, threads[-1]]) / np.asarray(thr[B, 1])
+        ratio = f"{np.median(r):.2f}x" + (f" ({r.min():.2f}-{r.max():.2f})" if reps > 1 else "")
+    return (f"solve_batch throughput B={B}, {label} thread(s) [problems/s]", cells, "", ratio)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="bimacppo-mpc-bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", default=None, help="MPC config YAML (default: packaged mpc.yaml)")
     ap.add_argument("--bench-config", default=None, help="benchmark YAML (default: packaged bench.yaml)")
     ap.add_argument("--episodes", type=int, default=None, help="override the number of episodes")
+    ap.add_argument("--repeats", type=int, default=None,
+                    help="override batch_repeats, the throughput pairs per batch size")
     ap.add_argument("--out", default=None, help="write the results as a markdown table to this file")
     args = ap.parse_args(argv)
     from tqdm import tqdm
@@ -214,6 +234,10 @@ def main(argv=None) -> int:
     n_ep = args.episodes if args.episodes is not None else bc.episodes
     if n_ep < 1:
         ap.error("--episodes must be >= 1")
+    if args.repeats is not None:
+        if args.repeats < 1:
+            ap.error("--repeats must be >= 1")
+        bc = dataclasses.replace(bc, batch_repeats=args.repeats)
 
     t0 = time.perf_counter()
     fast = make_controller(cfg, "fast")
@@ -234,12 +258,17 @@ def main(argv=None) -> int:
     import numba
 
     threads = (1, numba.config.NUMBA_NUM_THREADS) if numba.config.NUMBA_NUM_THREADS > 1 else (1,)
-    with tqdm(total=len(bc.batch_sizes) * len(threads), desc="batched", unit="run") as bar:
+    reps = bc.batch_repeats
+    with tqdm(total=len(bc.batch_sizes) * len(threads) * reps, desc="batched", unit="run") as bar:
         thr = {}
         for B in bc.batch_sizes:
             for nt in threads:
-                thr[B, nt] = batch_throughput(cfg, episodes, B, bc.batch_steps, nt)
-                bar.update(1)
+                thr[B, nt] = []
+            for _ in range(reps):
+                # back to back, so that a pair shares the machine's state and its ratio is fair
+                for nt in threads:
+                    thr[B, nt].append(batch_throughput(cfg, episodes, B, bc.batch_steps, nt))
+                    bar.update(1)
 
     both = rf["ok"] & ri["ok"]
     gap = (rf["cost"][both] - ri["cost"][both]) / np.maximum(ri["cost"][both], 1e-12)
@@ -269,10 +298,7 @@ def main(argv=None) -> int:
         ("max |u_fast - u_ipopt| median / p99", f"{_pct(du, 50):.2e} / {_pct(du, 99):.2e}", "", ""),
     ]
     for B in bc.batch_sizes:
-        cells = " / ".join(f"{thr[B, nt]:,.0f}" for nt in threads)
-        label = " / ".join(str(nt) for nt in threads)
-        ratio = f"{thr[B, threads[-1]] / thr[B, 1]:.2f}x" if len(threads) > 1 else ""
-        rows.append((f"solve_batch throughput B={B}, {label} thread(s) [problems/s]", cells, "", ratio))
+        rows.append(throughput_row(B, threads, thr, reps))
     rows.append(("numba load (or compile) on first use", f"{t_load:.1f} s", "", ""))
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)
