@@ -35,9 +35,10 @@ CONFIGS = {
     "batched-2proc": {**BATCHED, "batch_workers": 2},
     "batched-uncut": BATCHED,
 }
-# name -> overrides of the packaged mpc.yaml: "batched-uncut" runs every second NMPC start to
-# convergence (fast.second_start_cut: null), the solver as it was before the cut
-MPC = {"batched-uncut": {"fast": {"second_start_cut": None}}}
+# name -> overrides of the packaged mpc.yaml: "batched-uncut" is config/mpc_uncut.yaml, the solver
+# as it was before the cut and the side rule of the second start (every second start that passes
+# the gate runs, to convergence)
+MPC = {"batched-uncut": {"fast": {"second_start_cut": None, "steer_bound_other_side": False}}}
 
 CHILD = r"""
 import json, resource, sys, time

@@ -401,8 +401,9 @@ def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_p
     assert resolve_mpc_config(shipped).to_dict() == MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml").to_dict()
     # the table says which controller ran: the record, a --mpc-config, or the packaged one
     common = ["--episodes", "1", "--n-sv", "0", "--tasks", "straight", "--workers", "1", "--no-random-row"]
-    for extra, says in (([], "(run mpc_config) (fast.second_start_cut: None)"),
-                        (["--mpc-config", str(DEFAULT_PATH)], f"NMPC: {DEFAULT_PATH} (fast.second_start_cut: 2.0)"),
+    for extra, says in (([], "(run mpc_config) (fast.second_start_cut: None, fast.steer_bound_other_side: False)"),
+                        (["--mpc-config", str(DEFAULT_PATH)],
+                         f"NMPC: {DEFAULT_PATH} (fast.second_start_cut: 2.0, fast.steer_bound_other_side: True)"),
                         ([str(REPO / "bimacppo_planner/bimacppo_planner/policies/bimacppo_dual_lane_clone.pt")],
                          "(packaged; the policy records none)")):
         assert evaluate_main([*extra, *common]) == 0

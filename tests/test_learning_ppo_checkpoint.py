@@ -246,9 +246,15 @@ def test_the_recorded_mpc_config_reads_back_and_missing_is_unknown():
     # a key that declares what its absence meant: a run recorded before the second-start cut ran
     # without it, so its recorded controller is the uncut one, not today's default
     before_cut = cfg.to_dict()
-    del before_cut["fast"]["second_start_cut"]
+    del before_cut["fast"]["second_start_cut"], before_cut["fast"]["steer_bound_other_side"]
     assert MPCConfig.load().fast.second_start_cut is not None
     assert mpc_config_of({"mpc_config": before_cut}, "x.pt").fast.second_start_cut is None
+    # one recorded after the cut but before the side rule of the gate: the cut, either side
+    before_side = cfg.to_dict()
+    del before_side["fast"]["steer_bound_other_side"]
+    assert MPCConfig.load().fast.steer_bound_other_side
+    between = mpc_config_of({"mpc_config": before_side}, "x.pt").fast
+    assert between.second_start_cut == cfg.fast.second_start_cut and not between.steer_bound_other_side
     from bimacppo_mpc.config import CONFIG_DIR
     uncut = MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml").replace(horizon=12, steer_rate_max=None)
     assert mpc_config_of({"mpc_config": before_cut}, "x.pt").to_dict() == uncut.to_dict()

@@ -134,6 +134,42 @@ def test_the_gate_sees_a_new_reference_per_slot_and_after_reset():
     assert np.array_equal(again.U[1], first.U[1]) and again.cost[1] == first.cost[1]
 
 
+def test_the_side_rule_explores_only_the_other_side():
+    z = np.zeros(2 * CFG.horizon)
+    for last, bound, explores in ((0.3, CFG.delta_max, False), (0.3, CFG.delta_min, True),
+                                  (-0.2, CFG.delta_min, False), (-0.2, CFG.delta_max, True),
+                                  (0.0, CFG.delta_max, True), (0.0, CFG.delta_min, True)):
+        z[-1] = last
+        assert K.second_start_explores(z, bound) is explores, (last, bound)
+    with pytest.raises(ValueError, match="fast.steer_bound_other_side"):
+        CFG.replace(fast={"steer_bound_other_side": "no"})
+
+
+def test_the_side_rule_skips_only_second_starts_and_keeps_the_others_bitwise():
+    """Solved from scratch each time, a problem the rule leaves to one start gets the one-start
+    plan, and one where the second start still runs gets the plan of the gate without the rule."""
+    from bimacppo_mpc.bench import BenchConfig, generate_problems
+    assert CFG.fast.steer_bound_other_side and CFG.fast.steer_bound_gate
+    ctrl = {name: make_controller(c, "fast") for name, c in (
+        ("rule", CFG), ("either", CFG.replace(fast={"steer_bound_other_side": False})), ("one", ONE_START))}
+    skipped = kept = 0
+    for ep in generate_problems(CFG, BenchConfig.load(), episodes=3):
+        for x0, ref, up in zip(ep.X0, ep.Xref, ep.Uprev):
+            for c in ctrl.values():
+                c.reset()
+            r, e, o = (ctrl[k].solve(x0, ref, up) for k in ("rule", "either", "one"))
+            assert r.ok and e.ok
+            if r.starts == 1:
+                assert o.ok and np.array_equal(r.U, o.U)
+                skipped += e.starts == 2
+            else:
+                assert e.starts == 2 and np.array_equal(r.U, e.U) and r.iterations == e.iterations
+                kept += 1
+            if o.ok:                                 # a failed first start always gets the second
+                assert r.cost <= o.cost * (1 + 1e-12)
+    assert skipped > 0 and kept > 0
+
+
 def _random_problems(n, seed):
     rng = np.random.default_rng(seed)
     for _ in range(n):
@@ -198,8 +234,10 @@ def test_the_cut_is_validated():
             CFG.replace(fast={"second_start_cut": bad})
 
 
-def test_the_uncut_overlay_changes_the_cut_alone():
+def test_the_uncut_overlay_is_the_solver_before_the_cut_and_the_side_rule():
+    # the solver the recorded training runs used: only the two keys added since differ
     from bimacppo_mpc.config import CONFIG_DIR
     uncut = MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml")
-    assert uncut.fast.second_start_cut is None
-    assert uncut.replace(fast={"second_start_cut": CFG.fast.second_start_cut}).to_dict() == CFG.to_dict()
+    assert uncut.fast.second_start_cut is None and not uncut.fast.steer_bound_other_side
+    now = {"second_start_cut": CFG.fast.second_start_cut, "steer_bound_other_side": True}
+    assert uncut.replace(fast=now).to_dict() == CFG.to_dict()

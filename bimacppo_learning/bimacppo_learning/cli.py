@@ -391,7 +391,9 @@ def _nmpc_note(cfg) -> str:
 
     if cfg is None:
         return f"NMPC: {DEFAULT_PATH} (packaged; the policy records none)"
-    return f"NMPC: {cfg.source} (fast.second_start_cut: {cfg.fast.second_start_cut})"
+    f = cfg.fast
+    return (f"NMPC: {cfg.source} (fast.second_start_cut: {f.second_start_cut}, "
+            f"fast.steer_bound_other_side: {f.steer_bound_other_side})")
 
 
 if __name__ == "__main__":  # pragma: no cover

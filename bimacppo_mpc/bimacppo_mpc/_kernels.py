@@ -49,7 +49,8 @@ P_QX, P_QU, P_QDU = 8, 12, 14
 P_BRAKE, P_RELAX, P_TOL, P_EXACT, P_STEER_START, P_STEER_GATE = 16, 17, 18, 19, 20, 21
 P_STEER_RATE, P_JERK = 22, 23     # rate bounds [rad/s], [m/s^3]; 0 = no bound
 P_CUT = 24                        # fast.second_start_cut; 0 = never abandon
-P_SIZE = 25
+P_OTHER_SIDE = 25                 # fast.steer_bound_other_side (part of the gate); 0 = either side
+P_SIZE = 26
 
 # numerical constants of the linear algebra (not tuning knobs: scale-free guards)
 _EPS_PIVOT = 1e-12       # relative pivot below which a working-set row is dependent
@@ -904,9 +905,10 @@ def steer_bound_start(x0, xref, uprev, z_from, P, vlo, vhi, zlo, zhi, z, X):
     bound (left or right) costs less after projection (with a steering rate bound, the
     projection turns that into a ramp to the bound as fast as allowed). It lies in the basin
     of the solutions that turn as hard as allowed, which a chain warm-started from its own
-    smooth plans rarely reaches (docs/mpc.md, "Two starts")."""
+    smooth plans rarely reaches (docs/mpc.md, "Two starts"). Returns that bound."""
     N = z.size // 2
     best = np.inf
+    bound = P[P_DMAX]
     zc = np.empty(2 * N)
     for side in range(2):
         dval = P[P_DMAX] if side == 0 else P[P_DMIN]
@@ -918,8 +920,9 @@ def steer_bound_start(x0, xref, uprev, z_from, P, vlo, vhi, zlo, zhi, z, X):
         Jc = cost_of(X, zc, xref, uprev, P)
         if Jc < best:
             best = Jc
+            bound = dval
             z[:] = zc
-    return best
+    return bound
 
 
 @njit(cache=True)
@@ -956,12 +959,23 @@ def second_start_pays(z, X, xref, new_ref, zlo, zhi, P):
 
 
 @njit(cache=True)
+def second_start_explores(z, bound):
+    """The side rule of the gate (fast.steer_bound_other_side): True when the steering bound
+    the second start holds lies on the other side of the first solution z's final steering
+    angle (or that angle is zero). The second start is there to reach the basin of the
+    turn as hard as allowed to one side; a first solution that already ends steering to that
+    side lies in that basin, and a second start towards it converges back to the same plan
+    (docs/mpc.md, "Two starts")."""
+    return z[z.size - 1] * bound <= 0.0
+
+
+@njit(cache=True)
 def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter, qp_max_iter,
                Uout, Xout, cost, status, iters, starts):
-    """Problem bi of a batch: checks, one or two starts (the cheaper converged result is
-    kept), warm start and fallback. Rprev[bi] is the reference of the slot's previous solve
-    (the gate's "new reference"). Touches only slot bi of every array, so slots can run on
-    different threads."""
+    """Problem bi of a batch: checks, one or two starts (the second behind its gate and side
+    rule; the cheaper converged result is kept), warm start and fallback. Rprev[bi] is the
+    reference of the slot's previous solve (the gate's "new reference"). Touches only slot bi
+    of every array, so slots can run on different threads."""
     N = Uwarm.shape[1]
     n = 2 * N
     x0 = X0[bi]
@@ -990,15 +1004,16 @@ def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter
         st, J, it = sqp_ws(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk, np.inf)
         if P[P_STEER_START] > 0.5 and max_iter > 0 and (
                 st != ST_OK or P[P_STEER_GATE] < 0.5 or second_start_pays(z, X, xr, new_ref, zlo, zhi, P)):
-            starts[bi] = 2
             z2 = np.empty(n)
-            steer_bound_start(x0, xr, uprev, z, P, vlo, vhi, zlo, zhi, z2, X)
-            st2, J2, it2 = sqp_ws(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk,
-                                  J if st == ST_OK else np.inf)
-            it += it2
-            if st2 == ST_OK and (st != ST_OK or J2 < J - _SAME_MINIMUM * (1.0 + abs(J))):
-                st = st2
-                z[:] = z2
+            bound = steer_bound_start(x0, xr, uprev, z, P, vlo, vhi, zlo, zhi, z2, X)
+            if st != ST_OK or P[P_STEER_GATE] < 0.5 or P[P_OTHER_SIDE] < 0.5 or second_start_explores(z, bound):
+                starts[bi] = 2
+                st2, J2, it2 = sqp_ws(x0, xr, uprev, z2, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk,
+                                      J if st == ST_OK else np.inf)
+                it += it2
+                if st2 == ST_OK and (st != ST_OK or J2 < J - _SAME_MINIMUM * (1.0 + abs(J))):
+                    st = st2
+                    z[:] = z2
     if st == ST_OK:
         project(z, x0[2], vlo, vhi, zlo, zhi, P)
         rollout(x0, z, P, X)

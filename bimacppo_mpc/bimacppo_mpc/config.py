@@ -43,6 +43,8 @@ class FastSolverConfig:
     initial_guesses: tuple[str, ...] = setting(choices=INITIAL_GUESSES, min_length=1)
     steer_bound_start: bool
     steer_bound_gate: bool
+    # False: a second start runs whichever side its bound lies on (runs recorded before the key)
+    steer_bound_other_side: bool = setting(absent=False)
     # None: a second start always runs to convergence (runs recorded before the key ran that way)
     second_start_cut: float | None = setting(lo=1.0, absent=None)
     threads: int = setting(lo=0)

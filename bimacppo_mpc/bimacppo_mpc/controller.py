@@ -89,6 +89,7 @@ def pack_params(cfg: MPCConfig) -> np.ndarray:
     P[K.P_STEER_RATE] = cfg.steer_rate_max if cfg.steer_rate_max is not None else 0.0
     P[K.P_JERK] = cfg.jerk_max if cfg.jerk_max is not None else 0.0
     P[K.P_CUT] = cfg.fast.second_start_cut if cfg.fast.second_start_cut is not None else 0.0
+    P[K.P_OTHER_SIDE] = 1.0 if cfg.fast.steer_bound_other_side else 0.0
     return P
 
 
