@@ -197,3 +197,35 @@ def test_render_shows_the_scene(env):
     img = env.render()
     assert img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8
     assert img.std() > 10  # not a blank canvas
+
+
+def test_per_step_infos_keep_one_shape_so_vector_envs_can_stack_them():
+    """Envs whose episodes end in different ticks of a decision still give infos of one shape:
+    Gymnasium's vector envs stack each info key across envs into one array."""
+    from gymnasium.vector import AutoresetMode, SyncVectorEnv
+    cfg = EnvConfig.load(REPO / "bimacppo_learning/bimacppo_learning/config/env_extended.yaml")
+    k = cfg.action.decision_every
+    assert k > 1
+    venv = SyncVectorEnv([lambda: IntersectionEnv(config=cfg)] * 2, autoreset_mode=AutoresetMode.DISABLED)
+    try:
+        # env 0 drives at the far waypoint into the crossing traffic, env 1 stands: their
+        # episodes end at different decisions; over a few scenarios one ends within a decision
+        # (a collision or the goal between two decision ticks) while the other runs all ticks
+        partial = False
+        for seed in range(10):
+            venv.reset(seed=[seed, seed + 100], options={"n_sv": 3, "task": 1})
+            for _ in range(400):
+                _, _, term, trunc, info = venv.step(np.array([[4, 4, 1], [0, 0, 1]]))
+                assert info["commands"].shape == (2, k, 2)
+                ended = term | trunc
+                for i in np.nonzero(ended)[0]:
+                    rows = ~np.isnan(info["commands"][i]).any(axis=1)
+                    assert rows[0] and np.all(rows[:rows.sum()])        # the ticks run come first
+                    partial |= rows.sum() < k
+                if ended.any():
+                    break
+            if partial:
+                break
+        assert partial, "no episode ended within a decision: the case is not exercised"
+    finally:
+        venv.close()

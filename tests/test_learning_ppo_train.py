@@ -198,3 +198,33 @@ def test_bad_env_or_arguments_give_clear_errors(tmp_path):
         Trainer(ToyIntersectionEnv, ToyScheduler(), tmp_path / "c", p, t).train(episodes=0)
     with pytest.raises(TypeError, match="scheduler"):
         Trainer(ToyIntersectionEnv, object(), tmp_path / "d", p, t)
+
+
+class RaggedInfoEnv(ToyIntersectionEnv):
+    """An info value whose shape differs between envs: Gymnasium's vector env cannot stack it,
+    after the workers have answered the step."""
+
+    def step(self, action):
+        obs, r, term, trunc, info = super().step(action)
+        info["ragged"] = np.zeros(1 + int(self.np_random.integers(0, 3)))
+        return obs, r, term, trunc, info
+
+
+def test_an_error_in_an_async_step_ends_the_run_with_that_error(tmp_path):
+    """The error surfaces, the worker processes end, and closing does not wait for a step that
+    will never be answered (it did, forever, hiding the error)."""
+    import threading
+    p, t = toy_cfg(rollout_steps=16, vector="async", num_envs=2)
+    caught = []
+
+    def run():
+        try:
+            Trainer(RaggedInfoEnv, ToyScheduler(), tmp_path, p, t).train(episodes=40)
+        except Exception as e:  # noqa: BLE001 - the test inspects it
+            caught.append(e)
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    th.join(120)
+    assert not th.is_alive(), "training hung after the failed step"
+    assert caught and isinstance(caught[0], ValueError) and "broadcast" in str(caught[0])

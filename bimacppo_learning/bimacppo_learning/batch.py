@@ -173,7 +173,9 @@ class IntersectionBatch:
 
         Returns obs (B, obs_dim) float32, rewards (B,), terminated (B,), truncated (B,) and one
         info dict per slot (always: ``x_imr``, ``lane_change`` and ``commands``, the [a, δ] applied
-        at each tick of this decision; the episode summary when it ended)."""
+        at each tick of this decision, shape (decision_every, 2) with NaN rows for the ticks after
+        the episode ended: a fixed shape, so Gymnasium's vector envs can stack it across envs;
+        the episode summary when it ended)."""
         actions = np.asarray(actions)
         if actions.shape != (self.B, len(self.nvec)):
             raise ValueError(f"actions must have shape ({self.B}, {len(self.nvec)}), got {actions.shape}")
@@ -239,7 +241,7 @@ class IntersectionBatch:
                                  float(w.ego_tuple()[2]), float(w.dist_to_goal())) + shaping[i]
             self.returns[i] += rew[i]
             info: dict[str, Any] = {"x_imr": self.x_imr[i].copy(), "lane_change": bool(changed[i]),
-                                    "commands": applied[:ticks[i], i].copy()}
+                                    "commands": applied[:, i].copy()}
             if res.done:
                 term[i] = outcome in ("success", "collision") or (outcome == "timeout" and rcfg.timeout_terminal)
                 trunc[i] = not term[i]

@@ -190,7 +190,8 @@ def _run_cell(job: tuple) -> tuple:
                 commands.append(info["commands"])
                 speeds.append(float(info["x_imr"][2]))
                 done = term or trunc
-            comfort.add_episode(np.concatenate(commands), speeds)
+            applied = np.concatenate(commands)
+            comfort.add_episode(applied[~np.isnan(applied).any(axis=1)], speeds)   # NaN: ticks after the end
             counts[info["outcome"]] += 1
             threat += int(bool(info.get("threat_entry")))
             returns.append(float(info["episode_return"]))

@@ -152,6 +152,20 @@ def make_vector_env(env_fn: Callable[[], Any], num_envs: int, mode: str = "batch
     return venv
 
 
+def close_vector_env(venv, failed: bool) -> None:
+    """Close a vector env; after an error, terminate its workers instead of waiting for them.
+
+    An exception between a step's send and its collection (a worker's error, a bad info) leaves
+    Gymnasium's AsyncVectorEnv waiting for a step that will never be answered, and its plain
+    close() would wait for it forever, hiding the error that got there."""
+    from gymnasium.vector import AsyncVectorEnv
+
+    if failed and isinstance(venv, AsyncVectorEnv):
+        venv.close(terminate=True)
+    else:
+        venv.close()
+
+
 def reset_one(venv, index: int, seed: int | None, options: Mapping[str, Any]) -> tuple[np.ndarray, dict]:
     """Reset sub-env ``index`` alone with its own options (gymnasium 1.4: options['reset_mask']).
 

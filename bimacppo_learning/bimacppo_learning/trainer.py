@@ -32,7 +32,8 @@ from .checkpoint import (CHECKPOINT_FORMAT, FORMAT_VERSION, CheckpointError, che
                          restore_agent, save_checkpoint)
 from .ppo import PPO
 from .ppo_config import PPOConfig, TrainConfig, config_from_dict, config_to_dict, load_config
-from .rollout import RolloutBuffer, info_at, make_vector_env, reset_each, reset_one, vector_spaces
+from .rollout import (RolloutBuffer, close_vector_env, info_at, make_vector_env, reset_each, reset_one,
+                      vector_spaces)
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +108,7 @@ class Trainer:
         venv = make_vector_env(self.env_fn, self.tcfg.num_envs, self.tcfg.vector, self.tcfg.workers)
         writer = None
         bar = None
+        failed = True
         try:
             obs_dim, nvec = vector_spaces(venv)
             if self.agent is None:
@@ -129,13 +131,14 @@ class Trainer:
             export_policy(self.agent, self.run_dir / "policy.pt",
                           meta={**self.run_meta, "episodes": self.episodes, "env_steps": self.env_steps,
                                 "seed": self.tcfg.seed})
+            failed = False
             return self._result()
         finally:
             if bar is not None:
                 bar.close()
             if writer is not None:
                 writer.close()
-            venv.close()
+            close_vector_env(venv, failed)
 
     def save(self) -> pathlib.Path:
         """Write a checkpoint of everything needed to continue (atomic); prune old ones."""
