@@ -165,6 +165,10 @@ VARIANTS = {   # variant file -> what it changes relative to the packaged env.ya
          "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0, "min_lookahead": 4.0},
          "reward": {"timeout_mode": "truncate", "threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1,
                     "go_speed": 4.0}},
+    "studies/config/env_wait_chord_junction.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0], "junction": True},
+         "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0},
+         "reward": {"timeout_mode": "truncate", "threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1}},
     "studies/config/env_extended_safe.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}, "reward": {"collision_base": -30.0}},
@@ -426,3 +430,70 @@ def test_min_lookahead_lets_a_creeping_ev_reach_the_goal_on_the_empty_road():
         out[name] = sum((c.counts for c in cells), Counter())
     assert out["env_wait_chord"].get("success", 0) < 6
     assert out["env_wait_chord_look"] == Counter(success=6)
+
+
+def test_junction_features_follow_the_sv_rows_and_the_maps_time_to_box_rule():
+    from bimacppo_sim import load_map
+    road = load_map("dual_lane_4way")
+    H = road.H
+    cfg = ObservationConfig(max_sv=3, sv_clip=60.0, sv_frame="ego", pad_value=(60.0, 60.0, 0.0, 0.0),
+                            junction=True, tta_cap=8.0)
+    assert EnvConfig.load(overrides={"observation": {"junction": True}}).obs_dim == 16 + 4
+    ego = np.array([-2.0, -H - 20.0, 5.0, math.pi / 2])             # 20 m south of the box, heading north
+    svs = np.array([[H + 12.0, 2.0, 6.0, math.pi],                 # east arm, heading west: 12 m at 6 m/s
+                    [-H - 5.0, -2.0, 4.0, math.pi],                # west arm, heading away from the centre
+                    ])
+    o = observe(cfg, ego, np.array([-40.0, 2.0, math.pi]), svs, road)
+    base = observe(dataclasses_replace(cfg, junction=False), ego, np.array([-40.0, 2.0, math.pi]), svs)
+    assert o.shape == (20,) and np.array_equal(o[:16], base)          # appended: eq. (18)-(20) unchanged
+    assert o[16] == pytest.approx(20.0)                               # the EV's gap to the box
+    # SV slots in the rows' order (nearest first): the west SV (heading away) is nearer to the EV
+    d_east = math.hypot(H + 14.0, H + 22.0)
+    d_west = math.hypot(H + 3.0, H + 18.0)
+    assert d_west < d_east
+    assert o[17] == pytest.approx(8.0)                                # heading away: the cap
+    assert o[18] == pytest.approx(12.0 / 6.0)                         # gap / speed
+    assert o[19] == pytest.approx(8.0)                                # empty slot: the cap
+    inside = observe(cfg, np.array([0.0, 0.0, 3.0, math.pi / 2]), np.zeros(3),
+                     np.array([[1.0, 1.0, 0.0, 0.0]]), road)
+    assert inside[16] < 0.0 and inside[17] == 0.0                     # inside the box: 0 s
+    with pytest.raises(ValueError, match="road map"):
+        observe(cfg, ego, np.zeros(3), svs)
+    # a map without a junction: nothing is ever coming
+    straight = observe(cfg, ego, np.zeros(3), svs, load_map("three_lane_straight"))
+    assert straight[16] == pytest.approx(60.0) and np.all(straight[17:] == 8.0)
+    with pytest.raises(ConfigError, match="tta_cap"):
+        EnvConfig.from_dict({"observation": {"tta_cap": 0.0}})
+
+
+def dataclasses_replace(cfg, **kw):
+    import dataclasses
+    return dataclasses.replace(cfg, **kw)
+
+
+def test_junction_features_carry_the_yield_rules_threat_test():
+    """On the states of random drives, the privileged threat test is a function of what the
+    junction features show (for the SVs in the watched area): the observation holds the signal
+    the threat-entry price is paid on."""
+    from bimacppo_sim import Scenario, World, load_map
+    from bimacppo_sim.config import DriverConfig
+    from bimacppo_sim.drivers import junction_threatened
+    road = load_map("dual_lane_4way")
+    w, dcfg = World(road), DriverConfig.load()
+    cfg = ObservationConfig(max_sv=3, sv_clip=60.0, sv_frame="ego", pad_value=(60.0, 60.0, 0.0, 0.0),
+                            junction=True, tta_cap=8.0)
+    rng = np.random.default_rng(3)
+    seen = Counter()
+    for k in range(6):
+        w.reset(Scenario(n_sv=3, task=("left", "straight", "right")[k % 3], seed=900 + k))
+        for _ in range(150):
+            svs = w.sv_states()
+            o = observe(cfg, w.ego, w.goal, svs, road)
+            order = np.argsort(np.hypot(svs[:, 0] - w.ego[0], svs[:, 1] - w.ego[1]), kind="stable")
+            watched = np.array([w.sv_active[i] and math.hypot(*svs[i, :2]) <= dcfg.watch_distance for i in order])
+            from_obs = bool(np.any(o[17:][watched] < dcfg.safe_time_gap))
+            assert from_obs == junction_threatened(w, dcfg)
+            seen[from_obs] += 1
+            if w.step(np.array([rng.uniform(-1, 2), rng.uniform(-0.2, 0.2)])).done:
+                break
+    assert seen[True] > 10 and seen[False] > 10

@@ -38,3 +38,16 @@ def test_stop_line_lies_stop_margin_before_the_box_and_no_junction_means_infinit
     straight = World(load_map("three_lane_straight"))
     straight.reset(Scenario(n_sv=0, task="straight", seed=1))
     assert junction_distance(straight) == float("inf") and not junction_threatened(straight, cfg)
+
+
+def test_time_to_box_is_zero_inside_infinite_when_leaving_and_gap_over_speed_otherwise():
+    import math
+    road = load_map("dual_lane_4way")
+    H = road.H
+    assert road.box_gap(0.0, -H - 7.0) == 7.0 and road.box_gap(1.0, 1.0) < 0.0
+    assert road.time_to_box(1.0, -1.0, 5.0, 0.0) == 0.0                       # inside
+    assert road.time_to_box(0.0, -H - 10.0, 5.0, math.pi / 2) == 2.0          # heading for the centre
+    assert road.time_to_box(0.0, -H - 10.0, 5.0, -math.pi / 2) == math.inf    # heading away
+    assert road.time_to_box(0.0, -H - 1.0, 0.0, math.pi / 2) == 1.0 / road.BOX_SPEED_FLOOR
+    straight = load_map("three_lane_straight")
+    assert straight.box_gap(0.0, 0.0) == math.inf and straight.time_to_box(0.0, 0.0, 5.0, 0.0) == math.inf

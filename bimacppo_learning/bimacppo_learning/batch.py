@@ -165,7 +165,7 @@ class IntersectionBatch:
 
     def observe(self, i: int) -> np.ndarray:
         w = self.worlds[i]
-        return observe(self.cfg.observation, w.ego, w.goal, w.sv_states())
+        return observe(self.cfg.observation, w.ego, w.goal, w.sv_states(), self.road)
 
     # --------------------------------------------------------------------- step
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[dict]]:

@@ -211,7 +211,8 @@ class HighLevelPlanner:
         svs = np.asarray(svs, dtype=np.float64).reshape(-1, 4)
         if not np.all(np.isfinite(svs)):
             raise ValueError("SV states contain NaN or inf")
-        obs = observe(self.cfg.observation, ego, observed_goal(self.road, self.goal, ego[:2], self.world_cfg), svs)
+        obs = observe(self.cfg.observation, ego, observed_goal(self.road, self.goal, ego[:2], self.world_cfg), svs,
+                      self.road)
         self.tracker.update(ego[0], ego[1])
         action = self._act(obs)
         x_imr, changed = decode_action(action, self.tracker, self.cfg.action, self.road.lateral_point, ego)

@@ -34,6 +34,8 @@ class ObservationConfig:
     sv_order: str = setting(choices=("distance", "id"))
     pad_value: tuple[float, ...] = setting(length=4)
     sv_frame: str = setting(choices=("paper", "ego"))   # paper: |dx|, |dy| in the map frame (eq. 20); ego: signed, in the EV's frame
+    junction: bool = setting(absent=False)   # append the junction features (extension, docs/method.md); false: eq. (18)-(20) only
+    tta_cap: float = setting(lo=0.0, lo_open=True)   # s; the junction features' time-to-box ceiling ("not coming")
 
 
 @config_class(ENV_YAML, "action")
@@ -98,20 +100,32 @@ class EnvConfig:
 
     @property
     def obs_dim(self) -> int:
-        return 4 * (1 + self.observation.max_sv)
+        o = self.observation
+        return 4 * (1 + o.max_sv) + ((1 + o.max_sv) if o.junction else 0)
 
     @property
     def nvec(self) -> tuple[int, int, int]:
         return (self.action.n_waypoints, len(self.action.speeds), len(self.action.lane_change))
 
 
-def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.ndarray) -> np.ndarray:
-    """Eq. (18)-(20): EV features relative to the goal, then one row per SV, padded to N_sv^max.
+def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.ndarray, road=None) -> np.ndarray:
+    """Eq. (18)-(20): EV features relative to the goal, then one row per SV, padded to N_sv^max;
+    with ``cfg.junction`` the junction features follow (``road``, a ``RoadMap`` in whose frame
+    the states are given, is then required).
 
     SVs beyond N_sv^max are dropped farthest-first (the nearest ones matter for safety).
+
+    Junction features (an extension, docs/method.md): the EV's distance to the junction box
+    (``RoadMap.box_gap``, clipped to [-sv_clip, sv_clip]), then per SV slot, in the rows' order,
+    its time to reach the box at its own speed (``RoadMap.time_to_box``, capped at ``tta_cap``;
+    an empty slot reads ``tta_cap``). They are functions of the observed states and the
+    planner's own map, the same rule the "yield" driver's threat test applies, so the policy
+    sees what a threatened junction is instead of having to compose it from the goal offsets
+    and the SV rows.
     """
     x, y, v, psi = (float(ego[0]), float(ego[1]), float(ego[2]), float(ego[3]))
-    out = np.empty(4 * (1 + cfg.max_sv), dtype=np.float32)
+    n_base = 4 * (1 + cfg.max_sv)
+    out = np.empty(n_base + ((1 + cfg.max_sv) if cfg.junction else 0), dtype=np.float32)
     out[0] = abs(x - float(goal[0]))
     out[1] = abs(y - float(goal[1]))
     out[2] = v
@@ -140,6 +154,17 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
             out[o + 3] = wrap_angle(psi - spsi)
         else:
             out[o:o + 4] = cfg.pad_value
+    if cfg.junction:
+        if road is None:
+            raise ValueError("observation.junction needs the road map (observe(..., road=...))")
+        cap = cfg.tta_cap
+        out[n_base] = min(max(road.box_gap(x, y), -c), c)
+        for k in range(cfg.max_sv):
+            if k < len(svs):
+                sx, sy, sv, spsi = svs[k]
+                out[n_base + 1 + k] = min(road.time_to_box(sx, sy, sv, spsi), cap)
+            else:
+                out[n_base + 1 + k] = cap
     return out
 
 

@@ -17,13 +17,13 @@ DRIVERS = ("go", "yield")
 
 
 def junction_threatened(world, cfg: DriverConfig) -> bool:
-    """The "yield" rule's threat test: an active SV inside the junction box, or heading towards
-    it within ``watch_distance`` of the centre and less than ``safe_time_gap`` (at its own speed,
-    floored at 0.5 m/s) from the box. False on a map without a junction. It reads the SVs' true
+    """The "yield" rule's threat test: an active SV within ``watch_distance`` of the junction
+    centre that is inside the junction box or less than ``safe_time_gap`` from it at its own
+    speed (``RoadMap.time_to_box``). False on a map without a junction. It reads the SVs' true
     states, so outside the scripted drivers it is privileged information (training rewards only,
     never the policy's observation)."""
-    H = getattr(world.road, "H", None)
-    if H is None:
+    road = world.road
+    if road.kind != "four_way":
         return False
     for st, active in zip(world.sv_states(), world.sv_active):
         if not active:
@@ -31,11 +31,7 @@ def junction_threatened(world, cfg: DriverConfig) -> bool:
         x, y, v, psi = st
         if math.hypot(x, y) > cfg.watch_distance:
             continue
-        d = max(abs(x), abs(y)) - H
-        if d <= 0.0:
-            return True
-        towards = math.cos(psi) * (-x) + math.sin(psi) * (-y) > 0.0
-        if towards and d / max(v, 0.5) < cfg.safe_time_gap:
+        if road.time_to_box(x, y, v, psi) < cfg.safe_time_gap:
             return True
     return False
 

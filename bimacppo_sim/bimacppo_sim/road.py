@@ -275,6 +275,31 @@ class RoadMap:
         return ((i0 + idx[0]) * ra.path.ds, (i0 + idx[-1]) * ra.path.ds)
 
     # ------------------------------------------------------------------ queries
+    #: speed floor (m/s) of ``time_to_box``: a vehicle standing or crawling next to the box
+    #: counts as arriving soon, not never
+    BOX_SPEED_FLOOR = 0.5
+
+    def box_gap(self, x: float, y: float) -> float:
+        """Distance (m) from (x, y) to the junction box |x|, |y| <= H of the map frame, measured
+        along the arm it lies on (max(|x|, |y|) - H); <= 0 inside the box, +inf on a map without
+        a junction."""
+        if self.kind != "four_way":
+            return math.inf
+        return max(abs(x), abs(y)) - self.H
+
+    def time_to_box(self, x: float, y: float, v: float, psi: float) -> float:
+        """Seconds until a vehicle at (x, y), speed v, heading psi reaches the junction box at
+        its speed (floored at ``BOX_SPEED_FLOOR``): 0 inside the box, +inf when it heads away
+        from the junction centre or the map has no junction. The one rule behind the "yield"
+        driver's threat test (``drivers.junction_threatened``) and the planner's junction
+        features (``decision.observe``)."""
+        d = self.box_gap(x, y)
+        if d <= 0.0:
+            return 0.0
+        if not math.isfinite(d) or math.cos(psi) * (-x) + math.sin(psi) * (-y) <= 0.0:
+            return math.inf
+        return d / max(v, self.BOX_SPEED_FLOOR)
+
     def drivable(self, x: float, y: float) -> bool:
         """True when (x, y) lies on the paved area (lanes, junction box minus kerb fillets)."""
         ax, ay = abs(x), abs(y)
