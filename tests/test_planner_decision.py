@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 
 from bimacppo_common.conventions import wrap_angle
+from conftest import REPO
 from bimacppo_planner.decision import (ActionConfig, ConfigError, EnvConfig, ObservationConfig, WaypointTracker,
                                        decode_action, observe)
+
+REPO_ENV_JUNCTION = REPO / "studies/config/env_wait_chord_junction_road.yaml"
 
 
 def test_wrap_angle_stays_in_half_open_interval():
@@ -168,6 +171,10 @@ VARIANTS = {   # variant file -> what it changes relative to the packaged env.ya
     "studies/config/env_wait_chord_junction.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0], "junction": True},
          "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0},
+         "reward": {"timeout_mode": "truncate", "threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1}},
+    "studies/config/env_wait_chord_junction_road.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0], "junction": True},
+         "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0, "chord_rule": "road"},
          "reward": {"timeout_mode": "truncate", "threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1}},
     "studies/config/env_extended_safe.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
@@ -466,11 +473,6 @@ def test_junction_features_follow_the_sv_rows_and_the_maps_time_to_box_rule():
         EnvConfig.from_dict({"observation": {"tta_cap": 0.0}})
 
 
-def dataclasses_replace(cfg, **kw):
-    import dataclasses
-    return dataclasses.replace(cfg, **kw)
-
-
 def test_junction_features_carry_the_yield_rules_threat_test():
     """On the states of random drives, the privileged threat test is a function of what the
     junction features show (for the SVs in the watched area): the observation holds the signal
@@ -497,3 +499,82 @@ def test_junction_features_carry_the_yield_rules_threat_test():
             if w.step(np.array([rng.uniform(-1, 2), rng.uniform(-0.2, 0.2)])).done:
                 break
     assert seen[True] > 10 and seen[False] > 10
+
+
+def test_corridor_on_road_tests_the_centreline_and_both_edges():
+    from bimacppo_planner.decision import corridor_on_road
+    square = lambda x, y: abs(x) <= 5.0 and abs(y) <= 5.0          # noqa: E731
+    assert corridor_on_road(-4.0, 0.0, 4.0, 0.0, 1.0, square)
+    assert not corridor_on_road(-4.0, 4.5, 4.0, 4.5, 1.0, square)    # an edge leaves the square
+    assert corridor_on_road(-4.0, 4.5, 4.0, 4.5, 0.4, square)
+    assert not corridor_on_road(0.0, 0.0, 0.0, 6.0, 0.1, square)     # the far end leaves it
+    assert corridor_on_road(1.0, 1.0, 1.0, 1.0, 1.0, square)         # zero length: the point
+
+
+def test_road_chord_rule_keeps_far_waypoints_for_an_ev_off_the_route_and_folds_at_the_kerb():
+    """On the real map: an EV one lane left of its route on the straight approach keeps WP4
+    under the road rule (the route rule sends it to WP0, a point beside it); in the right turn
+    a waypoint whose straight corridor crosses the kerb is folded back to one whose corridor
+    stays on the road."""
+    from bimacppo_planner.decision import corridor_on_road
+    from bimacppo_sim import Scenario, World, load_map
+    road = load_map("dual_lane_4way")
+    w = World(road)
+    w.reset(Scenario(n_sv=0, task="right", seed=5))
+    acfg = EnvConfig.load(REPO_ENV_JUNCTION).action
+    assert acfg.chord_rule == "road" and acfg.chord_tol == 1.0
+    route_rule = dataclasses_replace(acfg, chord_rule="route")
+    route = w.route
+    # on the straight approach, one lane to the left of the route
+    i = int(np.argmax(route[:, 1] > -30.0))
+    x, y = route[i, 0] - road.lane_width, route[i, 1]
+    ego = np.array([x, y, 5.0, math.pi / 2])
+    tr = WaypointTracker.for_action(route, acfg)
+    tr.update(x, y)
+    far = tr.candidates()[4]
+    got, _ = decode_action([4, 2, 1], tr, acfg, road.lateral_point, ego, road.drivable)
+    np.testing.assert_allclose(got[:2], far[:2])
+    near, _ = decode_action([4, 2, 1], tr, route_rule, road.lateral_point, ego, road.drivable)
+    np.testing.assert_allclose(near[:2], tr.candidates()[0][:2])
+    with pytest.raises(ValueError, match="drivable"):
+        decode_action([4, 2, 1], tr, acfg, road.lateral_point, ego)
+    # along the right turn: every chosen reference is reached on the road, and a fold-back
+    # happens only where the next waypoint out would leave it
+    folded = 0
+    for j in range(len(route) - 6):
+        x, y, psi = route[j]
+        tr = WaypointTracker.for_action(route, acfg)
+        tr.update(x, y)
+        ego = np.array([x, y, 5.0, psi])
+        got, _ = decode_action([4, 2, 1], tr, acfg, road.lateral_point, ego, road.drivable)
+        k = next(k for k in range(5) if np.allclose(tr.candidates()[k][:2], got[:2]))
+        if k > 0:
+            assert corridor_on_road(x, y, got[0], got[1], 1.0, road.drivable)
+        if k < 4:
+            nxt = tr.candidates()[k + 1]
+            assert not corridor_on_road(x, y, nxt[0], nxt[1], 1.0, road.drivable)
+            folded += 1
+    assert folded > 0
+
+
+def test_road_chord_rule_brings_constant_far_waypoint_drivers_through_the_empty_junction():
+    """End to end through the env and the NMPC: constant far-waypoint actions, with and without
+    lane changes, on the empty road. The route rule leaves the road in some (an EV off its route
+    is sent to WP0 beside it), the road rule in none."""
+    from bimacppo_common.conventions import TASKS
+    from bimacppo_learning.evaluate import evaluate
+
+    class Constant:
+        def __init__(self, a):
+            self.a = np.array(a, np.int64)
+
+        def act(self, obs):
+            return self.a
+    fails = {"route": 0, "road": 0}
+    for rule in fails:
+        cfg = EnvConfig.load(REPO_ENV_JUNCTION, overrides={"action.chord_rule": rule})
+        for task, a in (("straight", (4, 3, 2)), ("right", (4, 3, 0)), ("right", (4, 4, 1))):
+            c = evaluate(Constant(a), map_id="dual_lane_4way", n_svs=(0,), tasks=(TASKS.index(task),), episodes=3,
+                         workers=1, random_row=False, env_config=cfg, seed_set="validation")[0]
+            fails[rule] += 3 - c.counts.get("success", 0)
+    assert fails["road"] == 0 and fails["route"] >= 3, fails

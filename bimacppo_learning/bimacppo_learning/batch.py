@@ -188,7 +188,8 @@ class IntersectionBatch:
             ego = self.worlds[i].ego_tuple()
             tr = self.trackers[i]
             tr.update(ego[0], ego[1])
-            self.x_imr[i], changed[i] = decode_action(actions[i], tr, acfg, self.road.lateral_point, ego)
+            self.x_imr[i], changed[i] = decode_action(actions[i], tr, acfg, self.road.lateral_point, ego,
+                                                                self.road.drivable)
         results: list = [None] * self.B
         alive = np.ones(self.B, bool)
         X0 = self._X0

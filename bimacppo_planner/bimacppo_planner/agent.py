@@ -215,7 +215,8 @@ class HighLevelPlanner:
                       self.road)
         self.tracker.update(ego[0], ego[1])
         action = self._act(obs)
-        x_imr, changed = decode_action(action, self.tracker, self.cfg.action, self.road.lateral_point, ego)
+        x_imr, changed = decode_action(action, self.tracker, self.cfg.action, self.road.lateral_point, ego,
+                                          self.road.drivable)
         return x_imr, {"action": action, "obs": obs, "lane_change": changed,
                        "candidates": self.tracker.candidates()}
 

@@ -38,6 +38,14 @@ class ObservationConfig:
     tta_cap: float = setting(lo=0.0, lo_open=True)   # s; the junction features' time-to-box ceiling ("not coming")
 
 
+#: what the chord limit tests: the chord's distance from the route points, or that a corridor
+#: around the chord lies on the paved road (decode_action)
+CHORD_RULES = ("route", "road")
+#: spacing (m) of the points at which the "road" chord rule tests the corridor; well under the
+#: kerb radius of any map, so no corner fillet fits between two tests
+CHORD_STEP = 0.5
+
+
 @config_class(ENV_YAML, "action")
 class ActionConfig:
     n_waypoints: int = setting(lo=1)
@@ -46,6 +54,7 @@ class ActionConfig:
     decision_every: int = setting(lo=1)
     zero_speed: str = setting(choices=ZERO_SPEED_MODES)   # waypoint (paper) | hold: see env.yaml
     chord_tol: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
+    chord_rule: str = setting(choices=CHORD_RULES, absent="route")   # what the chord limit tests, see env.yaml
     min_lookahead: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
 
     def _check(self) -> None:
@@ -250,8 +259,27 @@ class WaypointTracker:
         return 0
 
 
+def corridor_on_road(x0: float, y0: float, x1: float, y1: float, half_width: float, drivable) -> bool:
+    """True when the straight corridor of half-width ``half_width`` from (x0, y0) to (x1, y1)
+    lies on the paved road: ``drivable(x, y)`` holds at its centreline and both edges every
+    ``CHORD_STEP`` metres, ends included."""
+    dx, dy = x1 - x0, y1 - y0
+    length = math.hypot(dx, dy)
+    n = max(1, int(math.ceil(length / CHORD_STEP)))
+    if length > 1e-9:
+        nx, ny = -dy / length * half_width, dx / length * half_width
+    else:
+        nx = ny = 0.0
+    for i in range(n + 1):
+        t = i / n
+        px, py = x0 + t * dx, y0 + t * dy
+        if not (drivable(px, py) and drivable(px + nx, py + ny) and drivable(px - nx, py - ny)):
+            return False
+    return True
+
+
 def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_point,
-                  ego=None) -> tuple[np.ndarray, bool]:
+                  ego=None, drivable=None) -> tuple[np.ndarray, bool]:
     """MultiDiscrete action -> x_IMR = [x, y, v, psi] (eq. 31), and whether a lane change was taken.
 
     ``lateral_point(x, y, psi, side)`` gives the matching point on the adjacent lane or None;
@@ -261,8 +289,12 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     heading of WP0, the nearest waypoint ahead, whatever A1 and A3 say. The route's heading, not
     the EV's own, because a stop ordered inside a turn brakes over a few metres: holding the
     current heading would straighten the wheel there and leave the lane. With ``cfg.chord_tol``
-    set, A1 picks among the waypoints whose chord from the EV keeps to the route
-    (`WaypointTracker.chord_limited`), before any lane change is applied. Where WP0 is
+    set, A1 is limited to the farthest of WP0..WP_A1 that passes the chord limit:
+    ``cfg.chord_rule`` "route", the waypoint's chord from the EV passes every route point before
+    it within chord_tol (`WaypointTracker.chord_limited`), before any lane change is applied;
+    "road", the reference the waypoint decodes to (its lane change applied) is reached from the
+    EV along a straight corridor of half-width chord_tol on the paved road (``corridor_on_road``
+    with ``drivable(x, y)``, the map's test); WP0 always passes. Where WP0 is
     (``cfg.min_lookahead``) is the tracker's, built by ``WaypointTracker.for_action(route, cfg)``.
     """
     a1, a2, a3 = int(action[0]), int(action[1]), int(action[2])
@@ -272,18 +304,27 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
         if ego is None:
             raise ValueError("action.zero_speed 'hold' needs the EV pose (ego) to decode a stop")
         return np.array([float(ego[0]), float(ego[1]), 0.0, tracker.heading_here()], dtype=np.float64), False
+    side = cfg.lane_change[a3]
+    road_rule = cfg.chord_tol is not None and cfg.chord_rule == "road"
     if cfg.chord_tol is not None:
         if ego is None:
             raise ValueError("action.chord_tol needs the EV pose (ego) to decode a waypoint")
-        a1 = tracker.chord_limited(a1, float(ego[0]), float(ego[1]), float(cfg.chord_tol))
-    wx, wy, wpsi = tracker.candidates()[a1]
-    side = cfg.lane_change[a3]
-    changed = False
-    if side != 0:
-        p = lateral_point(float(wx), float(wy), float(wpsi), int(side))
-        if p is not None:
-            wx, wy, wpsi = float(p[0]), float(p[1]), float(p[2])
-            changed = True
+        if road_rule and drivable is None:
+            raise ValueError("action.chord_rule 'road' needs the map's drivable(x, y) to decode a waypoint")
+        if not road_rule:
+            a1 = tracker.chord_limited(a1, float(ego[0]), float(ego[1]), float(cfg.chord_tol))
+    cands = tracker.candidates()
+    for k in range(a1, -1, -1):
+        wx, wy, wpsi = (float(c) for c in cands[k])
+        changed = False
+        if side != 0:
+            p = lateral_point(wx, wy, wpsi, int(side))
+            if p is not None:
+                wx, wy, wpsi = float(p[0]), float(p[1]), float(p[2])
+                changed = True
+        if not road_rule or k == 0 or corridor_on_road(float(ego[0]), float(ego[1]), wx, wy,
+                                                       float(cfg.chord_tol), drivable):
+            break
     return np.array([wx, wy, float(cfg.speeds[a2]), wpsi], dtype=np.float64), changed
 
 
