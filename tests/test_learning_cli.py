@@ -391,14 +391,19 @@ def test_evaluation_defaults_to_the_recorded_mpc_config(trained_unbounded, tmp_p
         other.write_text("horizon: 12\n")
         assert resolve_mpc_config(loaded, other).horizon == 12           # --mpc-config wins
     # a file that records none (the clone, written before runs recorded theirs): the packaged
-    # mpc.yaml (None); the shipped default was trained before the second-start cut existed, so
-    # its record means the packaged bounded controller without the cut
+    # mpc.yaml (None); a policy trained before the second-start cut existed records no cut key,
+    # and that means the packaged bounded controller without the cut; the shipped default was
+    # trained with mpc_uncut.yaml and records it key for key
     from bimacppo_mpc.config import CONFIG_DIR
     _, clone, _ = resolve_policy(REPO / "bimacppo_planner/bimacppo_planner/policies/bimacppo_dual_lane_clone.pt")
     assert "mpc_config" not in clone.meta and resolve_mpc_config(clone) is None
+    uncut = MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml").to_dict()
+    _, before_cut, _ = resolve_policy(REPO / "studies/policies/bimacppo_dual_lane_standing5000.pt")
+    assert "second_start_cut" not in before_cut.meta["mpc_config"]["fast"]
+    assert resolve_mpc_config(before_cut).to_dict() == uncut
     _, shipped, _ = resolve_policy(None)
-    assert "second_start_cut" not in shipped.meta["mpc_config"]["fast"]
-    assert resolve_mpc_config(shipped).to_dict() == MPCConfig.load(CONFIG_DIR / "mpc_uncut.yaml").to_dict()
+    assert shipped.meta["mpc_config"]["fast"]["second_start_cut"] is None
+    assert resolve_mpc_config(shipped).to_dict() == uncut
     # the table says which controller ran: the record, a --mpc-config, or the packaged one
     common = ["--episodes", "1", "--n-sv", "0", "--tasks", "straight", "--workers", "1", "--no-random-row"]
     for extra, says in (([], "(run mpc_config) (fast.second_start_cut: None, fast.steer_bound_other_side: False)"),

@@ -153,11 +153,14 @@ def test_a_random_policy_differs_by_seed_and_stays_in_its_action_space():
 
 
 def test_an_unpicklable_object_runs_in_this_process():
-    pol = Unpicklable(load_policy(None))
+    shipped = load_policy(None)
+    pol = Unpicklable(shipped)
     with pytest.raises(Exception):
         pickle.dumps(pol)
     with pytest.warns(RuntimeWarning, match="in this process"):
-        res = ev.evaluate(pol, workers=2, random_row=False, **{**CELL, "tasks": [0, 1]})
+        # an object carries no env config: the evaluation is told the one the policy was trained in
+        res = ev.evaluate(pol, workers=2, random_row=False, env_config=env_config_of(shipped),
+                          **{**CELL, "tasks": [0, 1]})
     assert [(c.task, c.n) for c in res] == [(0, 1), (1, 1)]
 
 
