@@ -100,18 +100,22 @@ def main() -> int:
     print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
           f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}\n")
     print("| path | train config (and NMPC overrides) | episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC s (solve_batch time, summed over processes) | "
+          "NMPC per problem: µs of solve_batch wall time / SQP iterations / second starts | "
           "policy s | update s | other s | peak RSS main / largest worker (MiB) | success, last 200 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows:
         tm = r["timing"]
         other = tm["total"] - tm["env"] - tm["policy"] - tm["update"]
         eps = r["episodes"] / r["wall"]
         spread = f" ({min(r['eps_all']):.1f}-{max(r['eps_all']):.1f})" if len(r["eps_all"]) > 1 else ""
         mpc = f"{tm['mpc_cpu']:.1f}" if "mpc_cpu" in tm else "-"
+        n = tm.get("mpc_problems", 0)
+        per = (f"{1e6 * tm['mpc_cpu'] / n:.0f} / {tm['mpc_iterations'] / n:.2f} / {100 * tm['mpc_second_starts'] / n:.1f} %"
+               if n else "-")
         conf = json.dumps(CONFIGS[name]) + (f" NMPC {json.dumps(MPC[name])}" if name in MPC else "")
         print(f"| {name} | {conf} | {eps:.1f}{spread} | {r['ticks'] / r['wall']:.0f} | "
               f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x | {tm['env']:.1f} | "
-              f"{mpc} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | "
+              f"{mpc} | {per} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | "
               f"{r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | {100 * r['success']:.0f}% |")
     return 0
 

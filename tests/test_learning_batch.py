@@ -128,6 +128,13 @@ def test_worker_processes_give_the_in_process_trajectories_and_report_worker_err
                 assert r2[4]["outcome"][i] == r1[4]["outcome"][i]
                 reset_one(one, int(i), 500 + t, OPTS[i])
                 reset_one(two, int(i), 500 + t, OPTS[i])
+        # the NMPC's work is counted per block and summed over the processes; a tick solves every
+        # slot of its block, so one block of 3 solves a finished slot until the others finish too,
+        # and two blocks solve no more than that
+        s1, s2 = one.mpc_stats(), two.mpc_stats()
+        assert s1["problems"] % 3 == 0 and 60 * 3 <= s2["problems"] <= s1["problems"] <= 60 * 3 * EXT.action.decision_every
+        for st in (s1, s2):
+            assert st["iterations"] >= st["problems"] > st["second_starts"] >= 0 and st["seconds"] > 0.0
         with pytest.raises(RuntimeError, match="batched env worker: ValueError: unknown reset option"):
             reset_one(two, 2, 1, {"bogus": 1})
     finally:

@@ -101,7 +101,9 @@ class IntersectionBatch:
         self.crossed = np.zeros(B, bool)       # EV front inside the junction box
         self.threat_entries = np.zeros(B, bool)   # ... and it entered while the junction was threatened
         self._X0 = np.zeros((B, 4))
-        self.mpc_seconds = 0.0                # time spent in the NMPC: where training time goes
+        # the NMPC's share of the work, where training time goes: seconds in solve_batch, problems
+        # solved, SQP iterations over them and problems that ran the second start
+        self.mpc_stats = {"seconds": 0.0, "problems": 0, "iterations": 0, "second_starts": 0}
 
     # ----------------------------------------------------------------- episodes
     def scenario_from_options(self, i: int, options: Mapping[str, Any] | None) -> Scenario:
@@ -202,7 +204,11 @@ class IntersectionBatch:
             for i in range(self.B):
                 X0[i] = self.worlds[i].ego_tuple()
             sol = self.ctrl.solve_batch(X0, self.x_imr, self.u_prev)
-            self.mpc_seconds += sol.solve_time_s
+            st = self.mpc_stats
+            st["seconds"] += sol.solve_time_s
+            st["problems"] += self.B
+            st["iterations"] += int(sol.iterations.sum())
+            st["second_starts"] += int((sol.starts == 2).sum())
             for i in np.nonzero(alive)[0]:
                 if not sol.ok[i]:
                     self.mpc_failures[i] += 1

@@ -49,7 +49,8 @@ class TrainResult:
     run_dir: pathlib.Path
     history_path: pathlib.Path
     last_checkpoint: pathlib.Path | None
-    timing: dict                 # seconds of this call in env / policy / update / total; batched: mpc_cpu (summed over workers)
+    timing: dict                 # seconds of this call in env / policy / update / total; batched: mpc_cpu (seconds in
+                                 # solve_batch), mpc_problems, mpc_iterations, mpc_second_starts (summed over workers)
 
 
 class Trainer:
@@ -292,8 +293,10 @@ class Trainer:
                     self.save()
         finally:
             tm["total"] += time.perf_counter() - p0
-            if callable(getattr(venv, "mpc_seconds", None)):
-                tm["mpc_cpu"] = venv.mpc_seconds()   # CPU seconds over all worker processes
+            if callable(getattr(venv, "mpc_stats", None)):
+                mst = venv.mpc_stats()               # summed over all worker processes
+                tm["mpc_cpu"] = mst["seconds"]
+                tm.update({f"mpc_{k}": v for k, v in mst.items() if k != "seconds"})
             hist.close()
 
     def _finish_episode(self, info: Mapping[str, Any], slot: dict, terminated: bool, hist,

@@ -88,9 +88,10 @@ class BatchedVectorEnv(VectorEnv):
             infos = self._add_info(infos, summary, int(i))
         return obs, rew, term, trunc, infos
 
-    def mpc_seconds(self) -> float:
-        """Seconds spent in NMPC solves so far, summed over the blocks (so over processes)."""
-        return self.batch.mpc_seconds if self._pool is None else self._pool.mpc_seconds()
+    def mpc_stats(self) -> dict:
+        """The NMPC's work so far (``IntersectionBatch.mpc_stats``: seconds in solve_batch,
+        problems, SQP iterations, second starts), summed over the blocks (so over processes)."""
+        return dict(self.batch.mpc_stats) if self._pool is None else self._pool.mpc_stats()
 
     def close_extras(self, **kwargs):
         if self._pool is not None:
@@ -115,8 +116,8 @@ def _block_worker(conn, n: int, batch_kwargs: dict) -> None:
         if op == "close":
             break
         try:
-            if op == "mpc_seconds":
-                out = batch.mpc_seconds
+            if op == "mpc_stats":
+                out = batch.mpc_stats
             else:
                 out = batch.reset(*arg) if op == "reset" else batch.step(arg)
             conn.send(("ok", out))
@@ -168,10 +169,11 @@ class _BlockPool:
         return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
                 np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts]), infos)
 
-    def mpc_seconds(self) -> float:
+    def mpc_stats(self) -> dict:
         for c in self.conns:
-            c.send(("mpc_seconds", None))
-        return float(sum(self._answer(c) for c in self.conns))
+            c.send(("mpc_stats", None))
+        parts = [self._answer(c) for c in self.conns]
+        return {k: sum(p[k] for p in parts) for k in parts[0]}
 
     def close(self) -> None:
         for c in self.conns:
