@@ -184,6 +184,10 @@ VARIANTS = {   # variant file -> what it changes relative to the packaged env.ya
         {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0], "junction": True},
          "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0, "chord_rule": "road"},
          "reward": {"threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1}},
+    "studies/config/env_wait_chord_junction_road_overtake_go.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0], "junction": True},
+         "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0, "chord_rule": "road"},
+         "reward": {"threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1, "go_speed": 4.0}},
     "studies/config/env_extended_safe.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}, "reward": {"collision_base": -30.0}},
