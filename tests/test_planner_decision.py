@@ -188,6 +188,10 @@ VARIANTS = {   # variant file -> what it changes relative to the packaged env.ya
         {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0], "junction": True},
          "action": {"decision_every": 3, "zero_speed": "hold", "chord_tol": 1.0, "chord_rule": "road"},
          "reward": {"threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1, "go_speed": 4.0}},
+    "studies/config/env_wait_chord_junction_road_stop.yaml":
+        {"observation": {"sv_frame": "ego", "sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0], "junction": True},
+         "action": {"decision_every": 3, "zero_speed": "hold", "hold_decel": 4.0, "chord_tol": 1.0, "chord_rule": "road"},
+         "reward": {"timeout_mode": "truncate", "threat_entry": -10.0, "threat_speed": -1.0, "idle_clear": -0.1}},
     "studies/config/env_extended_safe.yaml":
         {"observation": {"sv_frame": "ego", "sv_clip": 30.0, "pad_value": [30.0, 30.0, 0.0, 0.0]},
          "action": {"decision_every": 3}, "reward": {"collision_base": -30.0}},
@@ -590,3 +594,66 @@ def test_road_chord_rule_brings_constant_far_waypoint_drivers_through_the_empty_
                          workers=1, random_row=False, env_config=cfg, seed_set="validation")[0]
             fails[rule] += 3 - c.counts.get("success", 0)
     assert fails["road"] == 0 and fails["route"] >= 3, fails
+
+
+def test_hold_with_a_deceleration_stops_ahead_along_the_route_at_the_evs_offset():
+    lateral = lambda x, y, psi, side: (x - 3.5 * side, y, psi)     # noqa: E731
+    hold = ActionConfig(n_waypoints=5, speeds=(0.0, 2.0, 4.0, 6.0, 8.0), lane_change=(-1, 0, 1),
+                        decision_every=3, zero_speed="hold", hold_decel=4.0)
+    # straight route north along x = 0; the EV 1.5 m to its right at 8 m/s: the stop lies
+    # 8^2 / (2 * 4) = 8 m ahead, still 1.5 m to the right, facing north
+    tr = WaypointTracker(_straight_route(), 5)
+    tr.update(1.5, 10.0)
+    for a1 in range(5):
+        for a3 in range(3):
+            x, changed = decode_action([a1, 0, a3], tr, hold, lateral, np.array([1.5, 10.0, 8.0, 1.4]))
+            np.testing.assert_allclose(x, [1.5, 18.0, 0.0, math.pi / 2], atol=1e-9)
+            assert not changed
+    # standing: the EV's own position, as without a deceleration
+    np.testing.assert_allclose(decode_action([2, 0, 1], tr, hold, lateral, np.array([1.5, 10.0, 0.0, 1.4]))[0],
+                               [1.5, 10.0, 0.0, math.pi / 2], atol=1e-9)
+    # in a turn the stop follows the route's bend over the braking distance
+    route = _turning_route()
+    tr = WaypointTracker(route, 5)
+    tr.update(0.0, -1.0)
+    d = 6.0 ** 2 / (2 * 4.0)                                       # 4.5 m: 1 m of straight, 3.5 m of arc
+    x, _ = decode_action([0, 0, 1], tr, hold, lateral, np.array([0.0, -1.0, 6.0, math.pi / 2]))
+    th = math.pi - (d - 1.0) / 8.0                                  # on the circle around (8, 0)
+    assert x[:2] == pytest.approx([8.0 + 8.0 * math.cos(th), 8.0 * math.sin(th)], abs=0.15)
+    assert x[3] < math.pi / 2 and x[2] == 0.0
+    # past the route's end it stays at the end
+    tr = WaypointTracker(_straight_route(), 5)
+    tr.update(0.0, 56.0)
+    end, _ = decode_action([0, 0, 1], tr, hold, lateral, np.array([0.0, 56.0, 8.0, math.pi / 2]))
+    assert end[1] == pytest.approx(57.0)
+    with pytest.raises(ConfigError, match="hold_decel"):
+        EnvConfig.from_dict({"action": {"hold_decel": 0.0}})
+    assert EnvConfig.from_dict({"action": {"zero_speed": "hold"}}).action.hold_decel is None   # older records
+
+
+def test_a_stop_from_speed_brakes_straight_with_the_stop_ahead_and_swerves_without_it():
+    """End to end through the env and the NMPC: at 7-9 m/s on the empty straight approach, a
+    held stop at the EV's own position leaves a target behind the car and the NMPC turns towards
+    it (up to a U-turn, off the road); the stop ahead at the braking distance brakes straight."""
+    turns = {}
+    for decel in (None, 4.0):
+        cfg = EnvConfig.load(REPO_ENV_JUNCTION, overrides={"action.hold_decel": decel})
+        from bimacppo_learning.env import IntersectionEnv
+        env = IntersectionEnv(config=cfg)
+        worst, crashed = 0.0, 0
+        for seed in (101, 102):
+            env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": seed})
+            for _ in range(4):
+                env.step(np.array([4, 3, 0]))                       # far, 6 m/s, a lane to the left
+            psi0 = env.world.ego_tuple()[3]
+            assert env.world.ego_tuple()[2] > 7.0
+            for _ in range(6):
+                _, _, term, trunc, info = env.step(np.array([0, 0, 1]))
+                worst = max(worst, abs(env.world.ego_tuple()[3] - psi0))
+                if term or trunc:
+                    crashed += info["outcome"] == "collision"
+                    break
+        env.close()
+        turns[decel] = (math.degrees(worst), crashed)
+    assert turns[None][0] > 60.0 and turns[None][1] >= 1, turns
+    assert turns[4.0][0] < 15.0 and turns[4.0][1] == 0, turns

@@ -53,6 +53,7 @@ class ActionConfig:
     lane_change: tuple[int, ...]
     decision_every: int = setting(lo=1)
     zero_speed: str = setting(choices=ZERO_SPEED_MODES)   # waypoint (paper) | hold: see env.yaml
+    hold_decel: float | None = setting(lo=0.0, lo_open=True, absent=None)   # m/s^2; where a hold stops, see env.yaml
     chord_tol: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
     chord_rule: str = setting(choices=CHORD_RULES, absent="route")   # what the chord limit tests, see env.yaml
     min_lookahead: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
@@ -236,6 +237,40 @@ class WaypointTracker:
         """The route's heading at the nearest waypoint not yet passed (WP0 without a look-ahead)."""
         return float(self.route[self.idx, 2])
 
+    def station(self, x: float, y: float) -> tuple[int, float, float]:
+        """Where the EV is along the route: (x, y) projected onto the route segment that ends at
+        the nearest waypoint not yet passed (clamped to it), as (that waypoint's index, px, py)."""
+        r, i = self.route, self.idx
+        a, b = r[max(i - 1, 0)], r[i]
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        len2 = dx * dx + dy * dy
+        t = 0.0 if len2 < 1e-18 else min(max(((x - a[0]) * dx + (y - a[1]) * dy) / len2, 0.0), 1.0)
+        return i, float(a[0] + t * dx), float(a[1] + t * dy)
+
+    def ahead(self, x: float, y: float, d: float) -> tuple[float, float, float]:
+        """The point d metres further along the route than the EV at (x, y), kept at the EV's
+        offset from the route: the EV's position moved by the route's own displacement from the
+        EV's station over arc length d (so it bends with the route and keeps the lane the EV is
+        in), and the route's heading there. Beyond the route's end it stays at the end."""
+        r, m = self.route, len(self.route) - 1
+        i, px, py = self.station(x, y)
+        qx, qy, left = px, py, float(d)
+        psi = float(r[i, 2])
+        while left > 0.0:
+            seg = math.hypot(r[i, 0] - qx, r[i, 1] - qy)
+            if seg >= left:
+                t = left / seg
+                qx, qy = qx + t * (r[i, 0] - qx), qy + t * (r[i, 1] - qy)
+                psi = float(r[i, 2])
+                break
+            left -= seg
+            qx, qy = float(r[i, 0]), float(r[i, 1])
+            psi = float(r[i, 2])
+            if i == m:
+                break
+            i += 1
+        return x + qx - px, y + qy - py, psi
+
     def chord_limited(self, k: int, x: float, y: float, tol: float) -> int:
         """The farthest of WP0..WPk whose chord from (x, y) passes every route point before it
         within ``tol`` (m). The route is a polyline through its points, so checking its vertices
@@ -284,11 +319,15 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
 
     ``lateral_point(x, y, psi, side)`` gives the matching point on the adjacent lane or None;
     where there is no adjacent lane the waypoint stays (and it does not count as a lane change).
-    With ``cfg.zero_speed == "hold"`` a zero speed (A2 = 0 m/s) means "stop where you are, facing
-    along the route": x_IMR is the EV's own position (``ego`` = [x, y, v, psi]) at 0 m/s with the
-    heading of WP0, the nearest waypoint ahead, whatever A1 and A3 say. The route's heading, not
-    the EV's own, because a stop ordered inside a turn brakes over a few metres: holding the
-    current heading would straighten the wheel there and leave the lane. With ``cfg.chord_tol``
+    With ``cfg.zero_speed == "hold"`` a zero speed (A2 = 0 m/s) means "stop, facing along the
+    route", whatever A1 and A3 say: x_IMR is at 0 m/s with the route's heading, at the EV's own
+    position (``ego`` = [x, y, v, psi]; ``cfg.hold_decel`` None) or, with ``cfg.hold_decel`` set,
+    where the EV comes to rest braking at that deceleration: v² / (2 hold_decel) further along the
+    route, at the EV's offset from it (``WaypointTracker.ahead``). The route's heading, not the
+    EV's own, because a stop ordered inside a turn brakes over a few metres: holding the current
+    heading would straighten the wheel there and leave the lane. A moving EV passes its own
+    position within a tick, after which that target lies behind it and the NMPC's position term
+    turns the car towards it; the stop ahead is a point the EV reaches by braking alone. With ``cfg.chord_tol``
     set, A1 is limited to the farthest of WP0..WP_A1 that passes the chord limit:
     ``cfg.chord_rule`` "route", the waypoint's chord from the EV passes every route point before
     it within chord_tol (`WaypointTracker.chord_limited`), before any lane change is applied;
@@ -303,7 +342,11 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     if cfg.zero_speed == "hold" and cfg.speeds[a2] == 0.0:
         if ego is None:
             raise ValueError("action.zero_speed 'hold' needs the EV pose (ego) to decode a stop")
-        return np.array([float(ego[0]), float(ego[1]), 0.0, tracker.heading_here()], dtype=np.float64), False
+        if cfg.hold_decel is None:
+            return np.array([float(ego[0]), float(ego[1]), 0.0, tracker.heading_here()], dtype=np.float64), False
+        v = max(float(ego[2]), 0.0)
+        hx, hy, hpsi = tracker.ahead(float(ego[0]), float(ego[1]), v * v / (2.0 * cfg.hold_decel))
+        return np.array([hx, hy, 0.0, hpsi], dtype=np.float64), False
     side = cfg.lane_change[a3]
     road_rule = cfg.chord_tol is not None and cfg.chord_rule == "road"
     if cfg.chord_tol is not None:
