@@ -5,16 +5,24 @@ its own for its whole life (``ros_domain.acquire``: a lock per id, so concurrent
 machine never share one; never 0 nor the ROS_DOMAIN_ID the session was started with, which is
 the user's own graph), exported as ROS_DOMAIN_ID to everything the tests start, and discovery
 is confined to this machine. A test that needs a further domain of its own takes it from
-``ros_domain.acquire`` too.
+``ros_domain.acquire`` too. ROS_HOME is a folder of the session's own.
 """
+import atexit
 import os
 import pathlib
+import shutil
+import tempfile
 
 import ros_domain
 
 if not ros_domain.held():   # once per process, also if this module is imported again by name
     os.environ["ROS_DOMAIN_ID"] = str(ros_domain.acquire())
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+if not os.environ.get("BIMACPPO_TEST_ROS_HOME"):
+    # per-machine ROS state (logs, the world's run-clock lease) in a folder of this session's
+    # own: a session's first world starts at one tick whatever ran before on the machine
+    os.environ["BIMACPPO_TEST_ROS_HOME"] = os.environ["ROS_HOME"] = tempfile.mkdtemp(prefix="bimacppo-ros-home-")
+    atexit.register(shutil.rmtree, os.environ["ROS_HOME"], True)
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 REPO = pathlib.Path(__file__).resolve().parents[1]

@@ -25,7 +25,8 @@ ROLE_PACKAGES = ["bimacppo_common", "bimacppo_sim", "bimacppo_mpc", "bimacppo_cu
 # the ROS layer, split like navigation2's nav2_msgs / nav2_ros_common / nav2_bringup
 ROS_LAYER = ["bimacppo_interfaces", "bimacppo_ros_common", "bimacppo_bag", "bimacppo_bringup"]
 PACKAGES = ROLE_PACKAGES + ROS_LAYER
-PURE_ROS_LAYER_MODULES = ["bimacppo_ros_common/tick_protocol.py", "bimacppo_bag/mcap_io.py"]
+PURE_ROS_LAYER_MODULES = ["bimacppo_ros_common/tick_protocol.py", "bimacppo_ros_common/run_clock.py",
+                          "bimacppo_bag/mcap_io.py"]
 # plain Python (no ROS package), never imported by the deployed packages
 LEARNING = "bimacppo_learning"
 TRAINING_ONLY = ("bimacppo_learning", "gymnasium", "tensorboard", "ray", "rliable")  # torch itself loads torch.optim

@@ -120,7 +120,7 @@ def _literal(node):
 
 
 def declared_parameters(module: str) -> dict:
-    """name -> default (None when not a literal) of every ``declare_parameter`` call in the
+    """name -> default (None when neither a literal nor a module-level name) of every ``declare_parameter`` call in the
     module: direct calls, calls through an alias (``d = self.declare_parameter``), and calls in
     a loop over a module-level dict literal of names (``for name, topic in TABLE.items()``)."""
     tree = ast.parse(module_file(module).read_text())
@@ -157,6 +157,9 @@ def declared_parameters(module: str) -> dict:
             continue
         first = node.args[0]
         default = _literal(node.args[1]) if len(node.args) > 1 else None
+        if default is None and len(node.args) > 1 and isinstance(node.args[1], ast.Name):
+            # a named constant (``MAX_STAMP_JUMP_S``): its value in the imported module
+            default = getattr(importlib.import_module(module), node.args[1].id, None)
         if isinstance(first, ast.Constant) and isinstance(first.value, str):
             out[first.value] = default
         elif isinstance(first, ast.Name) and first.id in loop_names:

@@ -7,7 +7,8 @@ Groups (each starts its processes once):
   and its file must hold everything the loop answered meanwhile.
 * ``realtime``: realtime world + planner + controller; the planner is SIGKILLed and the
   controller's watchdog must brake (a = a_min, finite) within its timeout; the controller
-  is flooded with /planner/reference at 10x the tick rate.
+  is flooded with /planner/reference at 10x the tick rate; the world is SIGKILLed and
+  restarted with its run clock (time goes on) and without (time goes back).
 * ``startup``: corrupt / missing / wrong-shape checkpoint, broken params file, malformed
   map: exit code 2 with one ``error:`` line, no traceback.
 
@@ -33,6 +34,7 @@ import ros_domain  # noqa: E402
 from test_ros_bad_parameters import CASES as BAD_PARAMETERS  # noqa: E402
 from bimacppo_interfaces import contract as I  # noqa: E402
 from bimacppo_bag import mcap_io  # noqa: E402
+from bimacppo_ros_common.run_clock import NO_FILE  # noqa: E402
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 LEDGER = F.Ledger()
@@ -486,28 +488,18 @@ def test_controller_flooded_at_10x(realtime):
     assert not w.bad, w.bad[:5]
 
 
-def test_world_restarted_in_realtime(realtime):
-    """The realtime world SIGKILLed and restarted (usually within its first episode here:
-    one episode outlasts the group, so its first goal comes again with the same stamp,
-    which the goal rule cannot tell from a repeat). Its ticks are older than the newest
-    answered one; planner and controller must notice the restart from them
-    (``STALE_RESTART``) and answer the new world's ticks."""
+def _restart_realtime_world(realtime, *extra):
+    """SIGKILL the realtime world and start it again (``extra``: more ``-p`` arguments); the
+    newest answered stamp before the kill, the command count then, the wall time once the new
+    world answered a reset, that reset's future and the new world's goal stamp."""
     from std_srvs.srv import Trigger
     w = realtime["watcher"]
-    assert realtime["up"]
-    # Counted: the new world's ticks below the old world's newest minus the nodes' answer
-    # caches (64 ticks): recovering once the new world's time caught up with the old one
-    # (what the nodes did before STALE_RESTART), or a tick answered from the old world's
-    # cache, does not count. So the old world runs 100 ticks first (20 s at 5 ticks/s).
-    cached = 64 * TICK
-    assert w.spin(60, lambda: max(w.answered, default=0) >= 100 * TICK)
-    goal0 = I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp)
     newest = max(w.answered)
     p = realtime["procs"]["world"]
     p.send_signal(signal.SIGKILL)
     p.wait(timeout=10)
     n0 = len(w.commands)
-    realtime["procs"]["world"] = F.start(*realtime["args"]["world"], log=realtime["logs"]["world"],
+    realtime["procs"]["world"] = F.start(*realtime["args"]["world"], *extra, log=realtime["logs"]["world"],
                                          env=realtime["env"])
     cli = realtime["reset"]
     # the dead world's service lingers in the discovery cache and looks ready: re-send the
@@ -517,13 +509,60 @@ def test_world_restarted_in_realtime(realtime):
         fut = cli.call_async(Trigger.Request())
         w.spin(3.0, lambda: fut.done())
     t_reset = time.monotonic()   # > 3 s after the kill: no command for the old world is in flight
-    goal1 = I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp)
+    return newest, n0, t_reset, fut, I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp)
+
+
+def test_world_restarted_in_realtime_continues_its_clock(realtime):
+    """The realtime world SIGKILLed mid-episode and restarted with its run clock (the default):
+    its time does not go back. Its ticks start after the old world's newest and within
+    LEASE_S of it, so its goal is the newest episode to planner and controller: they answer its
+    ticks with no restart and no resync."""
+    from bimacppo_ros_common.run_clock import LEASE_S
+    w = realtime["watcher"]
+    assert realtime["up"]
+    assert w.spin(60, lambda: len(w.answered) >= 20)
+    before = {k: _lines(realtime, k, "starting over") + _lines(realtime, k, RESYNC_LINE)
+              for k in ("planner", "controller")}
+    newest_state = max(w.states)
+    newest, n0, t_reset, fut, goal1 = _restart_realtime_world(realtime)
+
+    def answered_new():
+        return {st for t, st, *_ in w.commands[n0:] if t >= t_reset and st >= goal1 and st in w.states}
+    back = w.spin(60, lambda: len(answered_new()) >= 5)
+    restarts = {k: _lines(realtime, k, "starting over") + _lines(realtime, k, RESYNC_LINE) - before[k]
+                for k in before}
+    gap = (goal1 - newest_state) / I.NS_PER_S
+    held = back and fut.done() and 0 < gap <= LEASE_S + 0.2 and not any(restarts.values()) \
+        and not _alive(realtime)
+    LEDGER.record("realtime", "world SIGKILL+restart -> its clock continues, new ticks answered", held,
+                  f"gap={gap:.1f}s answered={len(answered_new())} restart_lines={restarts}")
+    assert held, (gap, len(answered_new()), restarts, _logs(realtime))
+    assert not w.bad, w.bad[:5]
+
+
+def test_world_restarted_in_realtime_with_time_going_back(realtime):
+    """The realtime world SIGKILLed and restarted without a run clock (``clock_file:=none``,
+    as a relaunched simulator whose /clock starts at zero; usually within its first episode
+    here: one episode outlasts the group, so its first goal comes again with the same stamp,
+    which the goal rule cannot tell from a repeat). Its ticks are older than the newest
+    answered one; planner and controller must notice the restart from them
+    (``STALE_RESTART``) and answer the new world's ticks."""
+    w = realtime["watcher"]
+    assert realtime["up"]
+    # Counted: the new world's ticks below the old world's newest minus the nodes' answer
+    # caches (64 ticks): recovering once the new world's time caught up with the old one
+    # (what the nodes did before STALE_RESTART), or a tick answered from the old world's
+    # cache, does not count. So the old world runs 100 ticks first (20 s at 5 ticks/s).
+    cached = 64 * TICK
+    assert w.spin(60, lambda: max(w.answered, default=0) >= 100 * TICK)
+    goal0 = I.stamp_to_ns(w.last[I.TOPIC_GOAL].header.stamp)
+    newest, n0, t_reset, fut, goal1 = _restart_realtime_world(realtime, "-p", f"clock_file:={NO_FILE}")
 
     def answered_new():   # the new world's ticks, while its time is still below the old one's
         return {st for t, st, *_ in w.commands[n0:] if t >= t_reset and st in w.states and st < newest - cached}
     back = w.spin(60, lambda: len(answered_new()) >= 5)
     held = back and fut.done() and not _alive(realtime)
-    LEDGER.record("realtime", "world SIGKILL+restart -> the new world's ticks answered", held,
+    LEDGER.record("realtime", "world SIGKILL+restart, time going back -> the new world's ticks answered", held,
                   f"same_goal_stamp={goal0 == goal1} below_old_newest={goal1 < newest} "
                   f"answered={len(answered_new())}")
     assert held, (len(answered_new()), _logs(realtime))

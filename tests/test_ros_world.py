@@ -158,3 +158,39 @@ def test_world_with_a_posed_map_publishes_in_the_map_frame(tmp_path):
         for n in nodes:
             n.destroy_node()
         rclpy.try_shutdown()
+
+
+def test_world_runs_never_go_back_in_time(tmp_path):
+    """Each world run starts after every stamp the earlier runs in its domain sent (the run
+    clock's lease); ``clock_file:=none`` starts at one tick. Realtime worlds, so the runs
+    publish ticks without anyone answering."""
+    from bimacppo_ros_common.run_clock import LEASE_S
+    from bimacppo_sim.ros.world_node import WorldNode
+
+    lease = tmp_path / "clock"
+
+    def one_run(clock_file, seconds=0.6):
+        world = WorldNode(parameter_overrides=[Parameter("mode", value="realtime"),
+                                               Parameter("rate_factor", value=20.0),
+                                               Parameter("clock_file", value=clock_file)])
+        ex = SingleThreadedExecutor()
+        ex.add_node(world)
+        first = world.stamp_ns()
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.01)
+        last = world.stamp_ns()
+        ex.shutdown()
+        world.destroy_node()
+        return first, last
+
+    rclpy.init()
+    try:
+        runs = [one_run(str(lease)) for _ in range(3)]
+        fresh = one_run("none")
+    finally:
+        rclpy.try_shutdown()
+    assert runs[0][0] == 100_000_000 and all(last > first for first, last in runs), runs
+    for (_, last), (first, _) in zip(runs, runs[1:]):
+        assert last < first <= last + int((LEASE_S + 0.1) * I.NS_PER_S) + 100_000_000, runs
+    assert fresh[0] == 100_000_000

@@ -9,6 +9,7 @@ really restarted, a source whose ticks the node keeps refusing.
 import numpy as np
 import pytest
 
+from bimacppo_ros_common.run_clock import LEASE_S
 from bimacppo_ros_common.tick_protocol import (GOAL_HISTORY, REFUSED, RESYNC_MIN_S, RESYNC_REPEATS,
                                             STALE_RESTART, TickProtocol, Verdict)
 
@@ -19,6 +20,7 @@ GOAL = (-23.0, 1.75, 0.0)
 OTHER_GOAL = (23.0, -5.25, 0.0)
 BOGUS = 10_013 * S              # the fault suite's far-future goal
 G = 11_900_000_000              # a genuine goal's stamp
+NEXT_RUN = 50 * TICK + int(LEASE_S * S) + TICK   # the latest a new run starts after 50 ticks of the last
 
 
 def _x(stamp, run=0):
@@ -115,6 +117,11 @@ CASES = [
      + [("state", (1 + STALE_RESTART) * TICK, None, V.RESTART),
         ("classify", (1 + STALE_RESTART) * TICK, None, V.ANSWER), ("answer", (2 + STALE_RESTART) * TICK, None, V.ANSWER)],
      lambda n: n.cleared == 1 and n.p.goal_stamp == TICK and tuple(n.p.goal[:2]) == OTHER_GOAL[:2]),
+    ("a world restarted mid-episode on its run clock: its goal is simply the newest episode",
+     episode(50) + [("goal", NEXT_RUN, OTHER_GOAL, V.NEW), ("answer", NEXT_RUN, _x(NEXT_RUN, run=1), V.ANSWER),
+                    ("answer", NEXT_RUN + TICK, _x(NEXT_RUN + TICK, run=1), V.ANSWER)],
+     lambda n: n.cleared == 0 and not [m for lvl, m in n.logs if lvl == "warning"]
+     and n.p.goal_stamp == NEXT_RUN and tuple(n.p.goal[:2]) == OTHER_GOAL[:2]),
     ("single late states and re-sent ticks never restart",
      episode() + sum(([("state", 5 * TICK, None, V.STALE), ("state", 100 * TICK, None, V.REPEAT),
                        ("answer", k * TICK, None, V.ANSWER)] for k in range(101, 101 + 3 * STALE_RESTART)), [])

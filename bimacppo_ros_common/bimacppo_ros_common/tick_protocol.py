@@ -40,6 +40,11 @@ this long (the world re-sends every ``resend_period_s``, 0.5 s by default, so a 
 1.5 s after the refusal; a downstream node refuses a tick only once its upstream answers it,
 so planner then controller resync within 3 s)."""
 
+MAX_STAMP_JUMP_S = 30.0
+"""Default of the nodes' ``max_stamp_jump_s``: how far ahead of the newest answered tick a
+stamp may lie and still be taken as the source's next tick. A world run starts within
+``run_clock.LEASE_S`` of the previous run's last stamp, so this must stay well above that."""
+
 JUMP_RESYNC_AFTER = 5
 """Stamps in a row more than ``max_jump_ns`` ahead, each newer than the last, that are taken
 as a real jump of an open-loop source (it was paused, a peer was gone a while)."""

@@ -29,7 +29,7 @@ from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_interfaces import contract as I
 from bimacppo_ros_common.params import ConfigError, param_file, param_range
 from bimacppo_ros_common.runtime import guarded, run_single
-from bimacppo_ros_common.tick_protocol import REFUSED, TickProtocol, Verdict
+from bimacppo_ros_common.tick_protocol import MAX_STAMP_JUMP_S, REFUSED, TickProtocol, Verdict
 
 SOLVERS = ("fast", "ipopt")
 
@@ -44,7 +44,7 @@ class ControllerNode(Node):
         self.declare_parameter("watchdog_timeout_s", 0.5)
         self.declare_parameter("publish_horizon", True)
         self.declare_parameter("cache_size", 64)
-        self.declare_parameter("max_stamp_jump_s", 30.0)
+        self.declare_parameter("max_stamp_jump_s", MAX_STAMP_JUMP_S)
         g = lambda n: self.get_parameter(n).value  # noqa: E731
         name = "controller"
         if g("solver") not in SOLVERS:

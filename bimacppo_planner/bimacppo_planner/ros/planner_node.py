@@ -47,7 +47,7 @@ from bimacppo_sim.geometry import MapFrame
 from bimacppo_interfaces import contract as I
 from bimacppo_ros_common.params import ConfigError, param_file, param_range
 from bimacppo_ros_common.runtime import guarded, one_line, run_single
-from bimacppo_ros_common.tick_protocol import REFUSED, TickProtocol, Verdict
+from bimacppo_ros_common.tick_protocol import MAX_STAMP_JUMP_S, REFUSED, TickProtocol, Verdict
 
 DEFAULT_CLASS = "bimacppo_planner.agent:HighLevelPlanner"
 
@@ -145,7 +145,7 @@ class PlannerNode(Node):
         self.declare_parameter("planner_class", DEFAULT_CLASS)
         self.declare_parameter("cache_size", 64)
         self.declare_parameter("publish_markers", True)
-        self.declare_parameter("max_stamp_jump_s", 30.0)
+        self.declare_parameter("max_stamp_jump_s", MAX_STAMP_JUMP_S)
         self.declare_parameter("action_selection", "", ParameterDescriptor(
             description="how the policy picks each head's action: argmax, or median (the head's "
                         "weighted median over its ordered values); empty: the way the policy file says",

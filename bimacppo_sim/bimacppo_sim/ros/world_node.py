@@ -20,8 +20,12 @@ late-joining reader does not always get the latched sample: with Fast DDS, a pla
 controller restarted after a SIGKILL sometimes never received it and then waited for a
 goal forever (fault suite). The re-send bounds that wait.
 
-Sim time starts at one tick and only grows, also across resets (a reset advances it by
-one tick), so every published state has a unique stamp and /clock never jumps back.
+Sim time only grows, also across resets (a reset advances it by one tick) and across runs:
+a run starts one tick after every stamp an earlier run in the same DDS domain reserved
+(``bimacppo_ros_common.run_clock``; parameter ``clock_file``, default
+``$ROS_HOME/bimacppo/world_clock_domain<ROS_DOMAIN_ID>``, ``none``: every run starts at one
+tick). So every published state has a unique stamp, /clock never jumps back, and a goal's
+stamp identifies its episode even when the world is restarted within an episode.
 
 Faults (docs/faults.md): the command callback is ``runtime.guarded`` (a malformed command is
 dropped with a throttled warning); commands are clipped to the vehicle's limits by
@@ -43,6 +47,7 @@ from std_srvs.srv import Trigger
 from bimacppo_common.conventions import TASKS
 from bimacppo_interfaces import contract as I
 from bimacppo_ros_common.params import ConfigError, param_range
+from bimacppo_ros_common.run_clock import NO_FILE, RunClock, default_clock_file
 from bimacppo_ros_common.runtime import guarded, one_line, run_single
 from bimacppo_sim import Scenario, World, load_map
 
@@ -67,6 +72,7 @@ class WorldNode(Node):
         d("resend_warn_after", 10)
         d("goal_resend_period_s", 1.0)
         d("publish_markers", True)
+        d("clock_file", "")
         p = lambda n: self.get_parameter(n).value  # noqa: E731
         self.mode = p("mode")
         if self.mode not in MODES:
@@ -107,7 +113,13 @@ class WorldNode(Node):
                                  guarded(self, I.TOPIC_COMMAND, self._on_command, self.dropped), I.STATE_QOS)
         self.create_service(Trigger, "~/reset", self._on_reset)
 
-        self.tick = 0                  # global tick counter: stamp = tick * dt
+        clock_file = str(p("clock_file"))
+        self.clock = RunClock(self.dt_ns, None if clock_file == NO_FILE else
+                              (clock_file or default_clock_file()),
+                              warning=lambda m: self.get_logger().warning(m))
+        if self.clock.first_tick > 1:
+            self.get_logger().info(f"clock starts at {self.clock.first_tick * self.dt_ns / I.NS_PER_S:.1f} s, "
+                                   f"after the earlier runs' ({self.clock.path})")
         self.active = False            # an episode is running
         self.episodes = 0
         self.results = []              # EpisodeResult of every finished episode (for in-process use)
@@ -160,13 +172,13 @@ class WorldNode(Node):
 
     # ------------------------------------------------------------------ episode
     def stamp_ns(self) -> int:
-        return self.tick * self.dt_ns
+        return self.clock.stamp_ns()
 
     def reset_episode(self) -> Scenario:
         """Start the scenario in the parameters (also what /world/reset does)."""
         sc = self._check_scenario(self._scenario_params())
         self.world.reset(sc)
-        self.tick += 1
+        self.clock.advance()
         self.active = True
         self.trajectory = []
         self._last_cmd = None
@@ -210,7 +222,7 @@ class WorldNode(Node):
         self._resends = 0
         res = self.world.step(np.asarray(u, dtype=float))
         self._delta_hold = float(u[1])
-        self.tick += 1
+        self.clock.advance()
         self._publish_state()
         if res.done:
             self.active = False
