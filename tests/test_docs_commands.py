@@ -121,7 +121,7 @@ def _literal(node):
 
 def declared_parameters(module: str) -> dict:
     """name -> default (None when neither a literal nor a module-level name) of every ``declare_parameter`` call in the
-    module: direct calls, calls through an alias (``d = self.declare_parameter``), and calls in
+    module: direct calls, ``params.declare(self, name, default, ...)``, calls through an alias (``d = self.declare_parameter``), and calls in
     a loop over a module-level dict literal of names (``for name, topic in TABLE.items()``)."""
     tree = ast.parse(module_file(module).read_text())
     tables = {}
@@ -132,7 +132,7 @@ def declared_parameters(module: str) -> dict:
                 for t in node.targets:
                     if isinstance(t, ast.Name):
                         tables[t.id] = keys
-    aliases = {"declare_parameter"}
+    aliases = {"declare_parameter", "declare"}
     for node in ast.walk(tree):
         if (isinstance(node, ast.Assign) and isinstance(node.value, ast.Attribute)
                 and node.value.attr == "declare_parameter"):
@@ -155,11 +155,16 @@ def declared_parameters(module: str) -> dict:
         name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
         if name not in aliases:
             continue
-        first = node.args[0]
-        default = _literal(node.args[1]) if len(node.args) > 1 else None
-        if default is None and len(node.args) > 1 and isinstance(node.args[1], ast.Name):
+        args = node.args
+        if name == "declare":   # params.declare(node, name, default, description, ...)
+            args = args[1:]
+            if not args:
+                continue
+        first = args[0]
+        default = _literal(args[1]) if len(args) > 1 else None
+        if default is None and len(args) > 1 and isinstance(args[1], ast.Name):
             # a named constant (``MAX_STAMP_JUMP_S``): its value in the imported module
-            default = getattr(importlib.import_module(module), node.args[1].id, None)
+            default = getattr(importlib.import_module(module), args[1].id, None)
         if isinstance(first, ast.Constant) and isinstance(first.value, str):
             out[first.value] = default
         elif isinstance(first, ast.Name) and first.id in loop_names:
@@ -523,7 +528,22 @@ def test_nodes_print_their_usage_for_help_and_do_not_start(module, tmp_path):
     r = subprocess.run([sys.executable, "-m", module, "--help"], cwd=tmp_path, env=env, capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 0, r.stdout + r.stderr
-    assert r.stdout.startswith("usage: ") and "--ros-args" in r.stdout and "docs/ros.md" in r.stdout
+    assert r.stdout.startswith("usage: ") and "--ros-args" in r.stdout and "docs/parameters.md" in r.stdout
     doc = importlib.import_module(module).__doc__.strip().splitlines()[0]
     assert doc in r.stdout
     assert "Traceback" not in r.stderr and list(tmp_path.iterdir()) == []
+
+
+def test_parameters_page_is_the_nodes_declarations():
+    """docs/parameters.md is what scripts/parameter_tables.py prints from the nodes' declare()
+    calls: every node executable is on it, and it changes when a parameter does."""
+    spec = importlib.util.spec_from_file_location("parameter_tables", REPO / "scripts" / "parameter_tables.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    nodes = {exe for exe, (_, target) in console_scripts().items() if is_node_executable(target)}
+    assert nodes == {exe for exe, _ in mod.NODES}, nodes ^ {exe for exe, _ in mod.NODES}
+    for exe, module in mod.NODES:
+        assert {r[0] for r in mod.declarations(module)} == set(declared_parameters(module)), exe
+    expected = mod.page()
+    assert (REPO / "docs" / "parameters.md").read_text() == expected, \
+        "docs/parameters.md is stale: run .venv/bin/python scripts/parameter_tables.py > docs/parameters.md"

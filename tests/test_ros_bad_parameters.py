@@ -14,7 +14,7 @@ CASES = [
     ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=torch.serialization:load"],
      "is not a planner class"),
     ("bimacppo_planner.ros.planner_node", ["-p", "planner_class:=nonesuch"], "entry points bimacppo.planners"),
-    ("bimacppo_planner.ros.planner_node", ["-p", "action_selection:=sample"], "action_selection must be empty or one of"),
+    ("bimacppo_planner.ros.planner_node", ["-p", "action_selection:=sample"], "action_selection must be one of"),
 ]
 
 

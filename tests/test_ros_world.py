@@ -58,7 +58,8 @@ def test_goal_resend_can_be_switched_off():
 
 def test_run_time_parameter_changes_are_applied_or_refused_with_a_reason():
     """scenario.* change at run time (the curriculum's channel); everything else is read at
-    start-up, so a change is refused with a reason instead of being accepted and ignored."""
+    start-up and declared read-only, so rclpy refuses a change with a reason instead of the
+    node accepting and ignoring it."""
     from bimacppo_sim.ros.world_node import WorldNode
 
     rclpy.init()
@@ -70,7 +71,7 @@ def test_run_time_parameter_changes_are_applied_or_refused_with_a_reason():
         assert not bad.successful and "n_sv" in bad.reason
         for name, value in (("rate_factor", -5.0), ("rate_factor", 2.0), ("mode", "realtime")):
             res = world.set_parameters([Parameter(name, value=value)])[0]
-            assert not res.successful and "read at start-up" in res.reason, (name, res.reason)
+            assert not res.successful and "read-only" in res.reason, (name, res.reason)
         assert world.get_parameter("rate_factor").value != -5.0
         world.destroy_node()
     finally:

@@ -460,6 +460,10 @@ def bag_files(path) -> Tuple[List[str], Dict[str, str]]:
     return files, qos
 
 
+COMPRESSIONS = ("zstd", "lz4", "none")
+"""Chunk compressions the writer offers (every MCAP reader decodes all three)."""
+
+
 def open_writer(path, chunk_size: int, compression: str = "zstd", library: str = "bimacppo-recorder"):
     """An MCAP writer (ros2 profile) on a NEW file; returns (writer, file).
 
@@ -467,7 +471,7 @@ def open_writer(path, chunk_size: int, compression: str = "zstd", library: str =
     output name must not destroy the crash's readable recording. ValueError names the path."""
     from mcap.writer import CompressionType, Writer
 
-    comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+    comp = dict(zip(COMPRESSIONS, (CompressionType.ZSTD, CompressionType.LZ4, CompressionType.NONE)))
     if compression not in comp:
         raise ValueError(f"compression must be one of {sorted(comp)}, got {compression!r}")
     try:

@@ -59,6 +59,7 @@ from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from bimacppo_interfaces import contract as I
+from bimacppo_ros_common.params import declare
 from bimacppo_ros_common.runtime import SetupException, optional_path_arg, run_single
 
 from . import mcap_io
@@ -107,19 +108,21 @@ class McapPlayer(Node):
 
     def __init__(self, path: Optional[str] = None, **kwargs) -> None:
         super().__init__(I.PLAYER_NODE, **kwargs)
-        self.declare_parameter("path", "")
-        self.declare_parameter("rate", 1.0)
-        self.declare_parameter("start_delay_s", 1.0)
-        self.declare_parameter("topics", Parameter.Type.STRING_ARRAY)
-        self.declare_parameter("exclude", Parameter.Type.STRING_ARRAY)
-        self.declare_parameter("queue_depth", 100)
-        self.declare_parameter("period_s", 0.002)
-        self.declare_parameter("linger_s", 1.0)
-        self.declare_parameter("timing", "log")
-        self.declare_parameter("as_world", False)
-        self.declare_parameter("wait_subscribers", 0)
-        p = self.get_parameter
-        self.path = path or p("path").value
+        bag = declare(self, "path", "", "the bag: an MCAP file or a rosbag2 directory (or the positional argument)")
+        self.rate = declare(self, "rate", 1.0, "playback speed (0 = as fast as possible)", lo=0.0, hi=1e6)
+        self._start_delay = declare(self, "start_delay_s", 1.0, "wait before the first message, so "
+                                    "subscribers match (wall s)", lo=0.0, hi=3600.0)
+        declare(self, "topics", Parameter.Type.STRING_ARRAY, "play only these topics (unset: every topic)")
+        declare(self, "exclude", Parameter.Type.STRING_ARRAY, "never play these topics")
+        self.depth = declare(self, "queue_depth", 100, "publisher queue depth", lo=1, hi=1_000_000)
+        period = declare(self, "period_s", 0.002, "playback timer period (wall s)", lo=0.0001, hi=1.0)
+        self.linger_s = declare(self, "linger_s", 1.0, "keep publishers up this long after the last message "
+                                "(wall s)", lo=0.0, hi=3600.0)
+        self.timing = declare(self, "timing", "log", "pace by the recorded log times, or by /clock", choices=TIMINGS)
+        as_world = declare(self, "as_world", False, "play only the world's topics: the bag stands in for the world")
+        self.wait_subscribers = declare(self, "wait_subscribers", 0, "start once this many subscribers match "
+                                        f"{WAIT_TOPIC} (0: after start_delay_s)", lo=0, hi=1000)
+        self.path = path or bag
         if not self.path:
             raise ValueError("mcap_player: no file given (positional argument or -p path:=FILE.mcap)")
         if not os.path.exists(self.path):
@@ -128,22 +131,14 @@ class McapPlayer(Node):
             self.files, self._bag_qos = mcap_io.bag_files(self.path)
         except mcap_io.BagError as exc:
             raise ValueError(f"mcap_player: {exc}") from None
-        self.rate = float(p("rate").value)
-        if not self.rate >= 0.0:
-            raise ValueError(f"mcap_player: rate must be >= 0 (0 = as fast as possible), got {self.rate}")
-        self.timing = p("timing").value
-        if self.timing not in TIMINGS:
-            raise ValueError(f"mcap_player: timing must be one of {TIMINGS}, got {self.timing!r}")
         self.topics = set(string_list(self, "topics"))
-        if bool(p("as_world").value):
+        if as_world:
             if self.topics:
                 raise ValueError("mcap_player: give either topics or as_world:=true, not both")
             self.topics = set(WORLD_TOPICS)
         if self.timing == "clock" and self.topics and I.TOPIC_CLOCK not in self.topics:
             raise ValueError(f"mcap_player: timing:=clock needs {I.TOPIC_CLOCK} among the played topics")
         self.exclude = set(string_list(self, "exclude"))
-        self.depth = int(p("queue_depth").value)
-        self.linger_s = float(p("linger_s").value)
         # a first pass finds every topic, so all publishers exist (and get matched during
         # start_delay_s) before the first message goes out: nothing early is lost
         self._pubs: Dict[str, Tuple[str, object]] = {}     # topic -> (type, publisher or None)
@@ -164,10 +159,6 @@ class McapPlayer(Node):
         self._pending = None
         self._t0_time: Optional[int] = None
         self._t0_wall: Optional[float] = None
-        self.wait_subscribers = int(p("wait_subscribers").value)
-        if self.wait_subscribers < 0:
-            raise ValueError(f"mcap_player: wait_subscribers must be >= 0, got {self.wait_subscribers}")
-        self._start_delay = float(p("start_delay_s").value)
         self._start_at: Optional[float] = None if self.wait_subscribers else time.monotonic() + self._start_delay
         self._waiting_since = time.monotonic()
         if self.wait_subscribers and self._wait_pub() is None:
@@ -175,7 +166,7 @@ class McapPlayer(Node):
         self.published = 0
         self.done = False
         self.exit_code = 0
-        self._timer = self.create_timer(float(p("period_s").value), self._tick,
+        self._timer = self.create_timer(period, self._tick,
                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _iter(self, report: mcap_io.ReadReport):

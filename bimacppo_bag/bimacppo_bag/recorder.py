@@ -64,7 +64,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from bimacppo_interfaces import contract as I
-from bimacppo_ros_common.params import param_range
+from bimacppo_ros_common.params import declare
 from bimacppo_ros_common.runtime import optional_path_arg, run_single
 
 from . import mcap_io
@@ -124,33 +124,27 @@ class McapRecorder(Node):
 
     def __init__(self, output: str | None = None, **kwargs) -> None:
         super().__init__(I.RECORDER_NODE, **kwargs)
-        self.declare_parameter("output", "")
-        self.declare_parameter("discovery_period_s", 0.5)
-        self.declare_parameter("chunk_size", 65536)
-        self.declare_parameter("flush_period_s", 1.0)
-        self.declare_parameter("compression", "zstd")
-        self.declare_parameter("topics", Parameter.Type.STRING_ARRAY)
-        self.declare_parameter("exclude", Parameter.Type.STRING_ARRAY)
+        out = declare(self, "output", "", "MCAP file to write (never overwritten); empty: the positional "
+                                         "argument, else bimacppo_<date>_<time>.mcap")
+        # a period of 0 would be a timer firing on every spin (a busy loop), a negative one an RCLError
+        discovery = declare(self, "discovery_period_s", 0.5, "how often new topics are looked for (wall s)",
+                            lo=MIN_PERIOD_S, hi=3600.0)
+        chunk = declare(self, "chunk_size", 65536, "MCAP chunk size (bytes)", lo=1, hi=2**31 - 1)
+        flush = declare(self, "flush_period_s", 1.0, "how often the file is flushed (wall s)",
+                        lo=MIN_PERIOD_S, hi=3600.0)
+        compression = declare(self, "compression", "zstd", "chunk compression", choices=mcap_io.COMPRESSIONS)
+        declare(self, "topics", Parameter.Type.STRING_ARRAY, "record only these topics (unset: every topic)")
+        declare(self, "exclude", Parameter.Type.STRING_ARRAY, "never record these topics")
         # Per-topic history the recorder can fall behind by before DDS drops the oldest: a lockstep
         # loop runs hundreds of ticks per second, so 1,000 is seconds of slack for a chunk write
         # or a scheduling stall on a loaded machine.
-        self.declare_parameter("queue_depth", 1000)
-        p = self.get_parameter
-        path = output or p("output").value or datetime.now().strftime("bimacppo_%Y%m%d_%H%M%S.mcap")
+        self.depth = declare(self, "queue_depth", 1000, "per-topic subscription depth", lo=1, hi=1_000_000)
+        path = output or out or datetime.now().strftime("bimacppo_%Y%m%d_%H%M%S.mcap")
         self.path = os.path.abspath(path)
         self.topics = {t for t in string_list(self, "topics") if t}
         self.exclude = {t for t in string_list(self, "exclude") if t}
-        self.depth = int(p("queue_depth").value)
-        chunk = int(p("chunk_size").value)
-        if chunk <= 0 or self.depth <= 0:
-            raise ValueError("mcap_recorder: chunk_size and queue_depth must be > 0")
-        # a period of 0 would be a timer firing on every spin (a busy loop), a negative one an RCLError
-        discovery = float(param_range(p("discovery_period_s").value, "discovery_period_s", I.RECORDER_NODE,
-                                      lo=MIN_PERIOD_S, hi=3600.0))
-        flush = float(param_range(p("flush_period_s").value, "flush_period_s", I.RECORDER_NODE,
-                                  lo=MIN_PERIOD_S, hi=3600.0))
         os.makedirs(os.path.dirname(self.path) or ".", exist_ok=True)
-        self._writer, self._file = mcap_io.open_writer(self.path, chunk, str(p("compression").value))
+        self._writer, self._file = mcap_io.open_writer(self.path, chunk, compression)
         self._topic_meta: Dict[str, dict] = {}
         self._time_range: List[int] = []        # first and last log time (ns)
         self._lock = threading.Lock()

@@ -1,15 +1,17 @@
-"""Parameter checks shared by the nodes: values in range, files that exist, params-file keys
-that no node declares.
+"""Node parameters: declared with rclpy's ``ParameterDescriptor`` (ranges, read-only flags,
+descriptions), files that exist, params-file keys that no node declares.
 
-A bad value is a :class:`ConfigError` naming the node and the parameter, which ``runtime``
-turns into one ``error:`` line and exit code 2; rclpy would otherwise accept it or fail later
-with a traceback.
+Every node declares its parameters through :func:`declare`, so the rules live in the
+descriptor where ROS tools see them (``ros2 param describe``) and rclpy enforces them: a value
+outside its range is refused at start-up and at run time, and a read-only parameter (read
+once at start-up) refuses a run-time change with a reason instead of accepting and ignoring it.
+A bad start-up value is a :class:`ConfigError` naming the node and the parameter, which
+``runtime`` turns into one ``error:`` line and exit code 2.
 """
 from __future__ import annotations
 
-import math
 import os
-from typing import List, Sequence
+from typing import List, Optional, Sequence
 
 
 class ConfigError(ValueError):
@@ -26,23 +28,46 @@ def param_file(value: str, name: str, node: str) -> str:
     return path
 
 
-def param_range(value, name: str, node: str, lo: float = None, hi: float = None,
-                lo_open: bool = False):
-    """A numeric parameter within [lo, hi] (``lo_open``: strictly above lo); finite."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{node}: parameter {name} must be a number, got {value!r}") from None
-    bad = not math.isfinite(v)
+def descriptor(default, description: str, lo=None, hi=None, choices: Optional[Sequence[str]] = None,
+               read_only: bool = True):
+    """The ``ParameterDescriptor`` of a parameter: a ``FloatingPointRange`` or ``IntegerRange``
+    [lo, hi] (both ends, inclusive, as ROS ranges are) for a number, the allowed values of a
+    string in ``additional_constraints``."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+    d = ParameterDescriptor(description=description, read_only=read_only)
+    if (lo is None) != (hi is None):
+        raise ValueError("descriptor: give both lo and hi, or neither")
     if lo is not None:
-        bad = bad or (v <= lo if lo_open else v < lo)
-    if hi is not None:
-        bad = bad or v > hi
-    if bad:
-        lo_s = "-inf" if lo is None else f"{lo}"
-        hi_s = "inf" if hi is None else f"{hi}"
-        raise ConfigError(f"{node}: parameter {name} must be in {'(' if lo_open else '['}{lo_s}, {hi_s}], "
-                          f"got {value!r}")
+        if isinstance(default, bool) or not isinstance(default, (int, float)):
+            raise ValueError(f"descriptor: a range needs a numeric default, got {default!r}")
+        if isinstance(default, int):
+            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+        else:
+            d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+        d.additional_constraints = f"in [{lo}, {hi}]"
+    if choices is not None:
+        d.additional_constraints = "one of: " + ", ".join(map(str, choices))
+    return d
+
+
+def declare(node, name: str, default, description: str, lo=None, hi=None,
+            choices: Optional[Sequence[str]] = None, read_only: bool = True):
+    """Declare ``name`` with its descriptor and return its value (the override, else ``default``).
+
+    ``read_only`` (the default): the node reads it once at start-up, so a run-time change is
+    refused by rclpy. ``choices``: the value must be one of them (checked here at start-up;
+    a run-time changeable parameter checks it again in the node's set-parameters callback)."""
+    from rclpy.exceptions import InvalidParameterValueException
+
+    try:
+        value = node.declare_parameter(name, default, descriptor(default, description, lo, hi, choices,
+                                                                 read_only)).value
+    except InvalidParameterValueException as exc:
+        got = str(exc).split("Invalid parameter value (", 1)[-1].split(") for parameter", 1)[0]
+        raise ConfigError(f"{node.get_name()}: parameter {name} must be in [{lo}, {hi}], got {got}") from None
+    if choices is not None and value not in choices:
+        raise ConfigError(f"{node.get_name()}: parameter {name} must be one of {tuple(choices)}, got {value!r}")
     return value
 
 

@@ -186,8 +186,8 @@ def node_usage(make_node: Callable) -> str:
     module = inspect.getmodule(make_node)
     doc = inspect.cleandoc(module.__doc__) if module is not None and module.__doc__ else ""
     head = (f"usage: {prog} [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r FROM:=TO ...]]\n"
-            "Parameters are ROS parameters (declared with ranges; `ros2 param describe` lists them);\n"
-            "docs/ros.md has every node's parameter table.")
+            "Parameters are ROS parameters (declared with ranges and descriptions; `ros2 param describe`\n"
+            "shows them); docs/parameters.md lists every node's parameters.")
     return head + ("\n\n" + doc if doc else "")
 
 

@@ -23,9 +23,9 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from bimacppo_common.conventions import TASKS
-from bimacppo_curriculum import make_scheduler
+from bimacppo_curriculum import SCHEDULERS, make_scheduler
 from bimacppo_interfaces import contract as I
-from bimacppo_ros_common.params import param_range
+from bimacppo_ros_common.params import declare
 from bimacppo_ros_common.runtime import guarded, run_single
 
 RECENT_TICKS = 256
@@ -46,28 +46,24 @@ class CurriculumNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(I.CURRICULUM_NODE, **kwargs)
-        d = self.declare_parameter
-        d("scheduler", "bimab")
-        d("seed", 0)
-        d("episodes", 10)
-        d("seed_base", 0)
-        d("result_topic", I.TOPIC_PLANNER_RESULT)
-        d("world_node", I.WORLD_NODE)
-        d("retry_period_s", 0.5)
-        d("stall_timeout_s", 5.0)
-        g = lambda n: self.get_parameter(n).value  # noqa: E731
-        self.episodes = int(g("episodes"))
-        if self.episodes < 0:
-            raise ValueError(f"curriculum: episodes must be >= 0 (0 = forever), got {self.episodes}")
-        self.sched = make_scheduler(g("scheduler"), seed=int(g("seed")),
-                                    total_episodes=self.episodes or None)
-        self.seed_base = int(g("seed_base"))
-        world = g("world_node").strip("/")
+        scheduler = declare(self, "scheduler", "bimab", "curriculum scheduler", choices=tuple(SCHEDULERS))
+        seed = declare(self, "seed", 0, "the scheduler's seed")
+        self.episodes = declare(self, "episodes", 10, "episodes to run (0 = forever); BiMAB scales its "
+                                "synchronisation period to it", lo=0, hi=2**31 - 1)
+        self.seed_base = declare(self, "seed_base", 0, "scenario seeds are seed_base + episode index")
+        result_topic = declare(self, "result_topic", I.TOPIC_PLANNER_RESULT, "episode results to learn from")
+        world = declare(self, "world_node", I.WORLD_NODE, "the world node whose reset and set_parameters "
+                                                          "services it calls").strip("/")
+        retry = declare(self, "retry_period_s", 0.5, "period of the service-call retry loop (wall s)",
+                        lo=0.01, hi=60.0)
+        self.stall_timeout = declare(self, "stall_timeout_s", 5.0, "no new tick for this long (wall s): "
+                                     "re-request the episode", lo=0.1, hi=3600.0)
+        self.sched = make_scheduler(scheduler, seed=seed, total_episodes=self.episodes or None)
         self.cli_params = self.create_client(SetParameters, f"/{world}/set_parameters")
         self.cli_reset = self.create_client(Trigger, f"/{world}/reset")
         self.dropped: dict = {}
-        self.create_subscription(I.DiagnosticStatus, g("result_topic"),
-                                 guarded(self, g("result_topic"), self._on_result, self.dropped), I.RESULT_QOS)
+        self.create_subscription(I.DiagnosticStatus, result_topic,
+                                 guarded(self, result_topic, self._on_result, self.dropped), I.RESULT_QOS)
         self.create_service(Trigger, I.SRV_CURRICULUM_NEXT, self._on_next)
         self.done = False
         self.finished = 0
@@ -76,8 +72,6 @@ class CurriculumNode(Node):
         self.current = None        # (i, j, seed) of the running episode
         self._busy = False         # a set/reset round trip is in flight
         self._warned = False
-        self.stall_timeout = float(param_range(g("stall_timeout_s"), "stall_timeout_s", "curriculum",
-                                               lo=0.0, hi=3600.0, lo_open=True))
         self._last_progress = time.monotonic()
         # progress = a state stamp not seen before: a lockstep world publishes the next tick only
         # once the current one was answered, and re-sends (with /clock) the tick nobody answers,
@@ -85,8 +79,6 @@ class CurriculumNode(Node):
         self._ticks: OrderedDict = OrderedDict()
         self.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM,
                                  guarded(self, I.TOPIC_EGO_ODOM, self._on_state, self.dropped), I.STATE_QOS)
-        retry = float(param_range(g("retry_period_s"), "retry_period_s", "curriculum", lo=0.0, hi=60.0,
-                                  lo_open=True))
         self.create_timer(retry, self._kick,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 

@@ -27,7 +27,7 @@ from rclpy.node import Node
 
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_interfaces import contract as I
-from bimacppo_ros_common.params import ConfigError, param_file, param_range
+from bimacppo_ros_common.params import declare, param_file
 from bimacppo_ros_common.runtime import guarded, run_single
 from bimacppo_ros_common.tick_protocol import MAX_STAMP_JUMP_S, REFUSED, TickProtocol, Verdict
 
@@ -39,25 +39,20 @@ class ControllerNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(I.CONTROLLER_NODE, **kwargs)
-        self.declare_parameter("solver", "fast")
-        self.declare_parameter("config", "")
-        self.declare_parameter("watchdog_timeout_s", 0.5)
-        self.declare_parameter("publish_horizon", True)
-        self.declare_parameter("cache_size", 64)
-        self.declare_parameter("max_stamp_jump_s", MAX_STAMP_JUMP_S)
-        g = lambda n: self.get_parameter(n).value  # noqa: E731
         name = "controller"
-        if g("solver") not in SOLVERS:
-            raise ConfigError(f"{name}: parameter solver must be one of {SOLVERS}, got {g('solver')!r}")
-        cfg_path = param_file(g("config"), "config", name) if g("config") else None
+        solver = declare(self, "solver", "fast", "NMPC solver", choices=SOLVERS)
+        config = declare(self, "config", "", "MPC config YAML overlaying the packaged mpc.yaml; empty: packaged")
+        cfg_path = param_file(config, "config", name) if config else None
         self.cfg = MPCConfig.load(cfg_path)
-        self.ctrl = make_controller(self.cfg, solver=g("solver"))
-        self.timeout_ns = int(float(param_range(g("watchdog_timeout_s"), "watchdog_timeout_s", name,
-                                                lo=0.0, hi=60.0, lo_open=True)) * I.NS_PER_S)
-        self.horizon = bool(g("publish_horizon"))
-        cache_size = int(param_range(g("cache_size"), "cache_size", name, lo=1, hi=100_000))
-        jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", name,
-                                        lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
+        self.ctrl = make_controller(self.cfg, solver=solver)
+        self.timeout_ns = int(declare(self, "watchdog_timeout_s", 0.5, "no reference for this long (ROS time) "
+                                      "means a safe stop", lo=0.01, hi=60.0) * I.NS_PER_S)
+        self.horizon = declare(self, "publish_horizon", True, "send the MPC horizon as points 1..N-1 of the command")
+        cache_size = declare(self, "cache_size", 64, "answers kept per stamp (re-sent ticks are answered from it)",
+                             lo=1, hi=100_000)
+        jump_ns = int(declare(self, "max_stamp_jump_s", MAX_STAMP_JUMP_S, "a stamp further ahead of the newest "
+                              "answered tick is a jump (docs/interfaces.md, tick protocol)",
+                              lo=0.1, hi=3600.0) * I.NS_PER_S)
         # answers: stamp -> JointTrajectory sent
         self.protocol = TickProtocol(cache_size, jump_ns, log=lambda level, m: getattr(self.get_logger(), level)(m),
                                      on_restart=self._clear_tick_caches)

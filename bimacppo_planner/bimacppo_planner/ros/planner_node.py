@@ -38,14 +38,13 @@ import inspect
 from collections import OrderedDict
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
 from bimacppo_planner.agent import HighLevelPlanner
 from bimacppo_planner.decision import EnvConfig, step_reward
 from bimacppo_sim.geometry import MapFrame
 from bimacppo_interfaces import contract as I
-from bimacppo_ros_common.params import ConfigError, param_file, param_range
+from bimacppo_ros_common.params import ConfigError, declare, param_file
 from bimacppo_ros_common.runtime import guarded, one_line, run_single
 from bimacppo_ros_common.tick_protocol import MAX_STAMP_JUMP_S, REFUSED, TickProtocol, Verdict
 
@@ -140,32 +139,28 @@ class PlannerNode(Node):
 
     def __init__(self, planner=None, **kwargs) -> None:
         super().__init__(I.PLANNER_NODE, **kwargs)
-        self.declare_parameter("policy_path", "")
-        self.declare_parameter("map_id", "dual_lane_4way")
-        self.declare_parameter("planner_class", DEFAULT_CLASS)
-        self.declare_parameter("cache_size", 64)
-        self.declare_parameter("publish_markers", True)
-        self.declare_parameter("max_stamp_jump_s", MAX_STAMP_JUMP_S)
-        self.declare_parameter("action_selection", "", ParameterDescriptor(
-            description="how the policy picks each head's action: argmax, or median (the head's "
-                        "weighted median over its ordered values); empty: the way the policy file says",
-            additional_constraints=f"empty or one of {', '.join(HighLevelPlanner.SELECTIONS)}"))
-        g = lambda n: self.get_parameter(n).value  # noqa: E731
-        if g("action_selection") not in ("", *HighLevelPlanner.SELECTIONS):
-            raise ConfigError(f"planner: parameter action_selection must be empty or one of "
-                              f"{HighLevelPlanner.SELECTIONS}, got {g('action_selection')!r}")
-        cache_size = int(param_range(g("cache_size"), "cache_size", "planner", lo=1, hi=100_000))
-        jump_ns = int(float(param_range(g("max_stamp_jump_s"), "max_stamp_jump_s", "planner",
-                                        lo=0.0, hi=3600.0, lo_open=True)) * I.NS_PER_S)
+        policy_path = declare(self, "policy_path", "", "policy checkpoint (.pt); empty: the shipped default")
+        map_id = declare(self, "map_id", "dual_lane_4way", "the planner's map: a packaged id or a map YAML path")
+        planner_class = declare(self, "planner_class", DEFAULT_CLASS, "a planner class: an entry point name of "
+                                "group bimacppo.planners, or module:Class with load/reset/step")
+        cache_size = declare(self, "cache_size", 64, "answers kept per stamp (re-sent ticks are answered from it)",
+                             lo=1, hi=100_000)
+        markers_on = declare(self, "publish_markers", True, "publish /planner/markers")
+        jump_ns = int(declare(self, "max_stamp_jump_s", MAX_STAMP_JUMP_S, "a stamp further ahead of the newest "
+                              "answered tick is a jump (docs/interfaces.md, tick protocol)",
+                              lo=0.1, hi=3600.0) * I.NS_PER_S)
+        selection = declare(self, "action_selection", "", "how the policy picks each head's action: argmax, or "
+                            "median (the head's weighted median over its ordered values); empty: the way the "
+                            "policy file says", choices=("", *HighLevelPlanner.SELECTIONS))
         # answers: stamp -> reference sent
         self.protocol = TickProtocol(cache_size, jump_ns, log=self._log, on_restart=self._clear_tick_caches)
         self.dropped: dict = {}          # topic -> messages dropped (bad content or stamp)
         if planner is None:
-            planner = make_planner(g("planner_class"), g("policy_path"), g("map_id"), g("action_selection"))
+            planner = make_planner(planner_class, policy_path, map_id, selection)
         self.hp = planner
         self.road = getattr(self.hp, "road", None)
         self.frame = getattr(self.road, "frame", None) or MapFrame()
-        self.markers_on = bool(g("publish_markers"))
+        self.markers_on = markers_on
         # the agent's own environment config: reward terms and decision period as in training
         cfg = getattr(self.hp, "cfg", None)
         if not isinstance(cfg, EnvConfig):

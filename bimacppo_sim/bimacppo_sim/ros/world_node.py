@@ -46,7 +46,7 @@ from std_srvs.srv import Trigger
 
 from bimacppo_common.conventions import TASKS
 from bimacppo_interfaces import contract as I
-from bimacppo_ros_common.params import ConfigError, param_range
+from bimacppo_ros_common.params import ConfigError, declare
 from bimacppo_ros_common.run_clock import NO_FILE, RunClock, default_clock_file
 from bimacppo_ros_common.runtime import guarded, one_line, run_single
 from bimacppo_sim import Scenario, World, load_map
@@ -59,39 +59,32 @@ class WorldNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(I.WORLD_NODE, **kwargs)
-        d = self.declare_parameter
-        d("map_id", "dual_lane_4way")
-        d("mode", "lockstep")
-        d("autostart", True)
-        d("scenario.n_sv", 0)
-        d("scenario.task", "straight")
-        d("scenario.seed", 0)
-        d("rate_factor", 1.0)
-        d("command_timeout_s", 0.3)
-        d("resend_period_s", 0.5)
-        d("resend_warn_after", 10)
-        d("goal_resend_period_s", 1.0)
-        d("publish_markers", True)
-        d("clock_file", "")
-        p = lambda n: self.get_parameter(n).value  # noqa: E731
-        self.mode = p("mode")
-        if self.mode not in MODES:
-            raise ValueError(f"world: parameter mode must be one of {MODES}, got {self.mode!r}")
-        self.rate_factor = float(param_range(p("rate_factor"), "rate_factor", "world", lo=0.0, hi=1000.0,
-                                             lo_open=True))
-        self.command_timeout_ns = int(float(param_range(p("command_timeout_s"), "command_timeout_s", "world",
-                                                        lo=0.0, hi=60.0, lo_open=True)) * I.NS_PER_S)
-        self.resend_period = float(param_range(p("resend_period_s"), "resend_period_s", "world",
-                                               lo=0.0, hi=60.0, lo_open=True))
-        self.resend_warn_after = int(param_range(p("resend_warn_after"), "resend_warn_after", "world",
-                                                 lo=1, hi=1_000_000))
-        self.goal_resend_period = float(param_range(p("goal_resend_period_s"), "goal_resend_period_s", "world",
-                                                    lo=0.0, hi=3600.0))
-        self.markers_on = bool(p("publish_markers"))
+        map_id = declare(self, "map_id", "dual_lane_4way", "map: a packaged id or a map YAML path")
+        self.mode = declare(self, "mode", "lockstep", "lockstep (deterministic) or realtime (wall timer)",
+                            choices=MODES)
+        autostart = declare(self, "autostart", True, "start the scenario at start-up (false when a curriculum "
+                                                     "drives)")
+        declare(self, "scenario.n_sv", 0, "N_sv of the next episode (read at each reset)", read_only=False)
+        declare(self, "scenario.task", "straight", "task of the next episode (read at each reset)",
+                choices=TASKS, read_only=False)
+        declare(self, "scenario.seed", 0, "scenario seed of the next episode (read at each reset)", read_only=False)
+        self.rate_factor = declare(self, "rate_factor", 1.0, "realtime: sim seconds per wall second",
+                                   lo=0.01, hi=1000.0)
+        self.command_timeout_ns = int(declare(self, "command_timeout_s", 0.3, "realtime: a command older than "
+                                              "this (sim s) or none means brake", lo=0.01, hi=60.0) * I.NS_PER_S)
+        self.resend_period = declare(self, "resend_period_s", 0.5, "lockstep: re-publish the current tick when "
+                                     "no command came for this long (wall s)", lo=0.01, hi=60.0)
+        self.resend_warn_after = declare(self, "resend_warn_after", 10, "lockstep: warn once when one tick was "
+                                         "re-sent this many times", lo=1, hi=1_000_000)
+        self.goal_resend_period = declare(self, "goal_resend_period_s", 1.0, "re-publish the running episode's "
+                                          "goal this often (wall s; 0 = never)", lo=0.0, hi=3600.0)
+        self.markers_on = declare(self, "publish_markers", True, "publish /objects/markers")
+        clock_file = declare(self, "clock_file", "", "run-clock lease file: empty = $ROS_HOME/bimacppo/"
+                                                     f"world_clock_domain<id>; {NO_FILE} = each run from one tick")
         try:
-            road = load_map(p("map_id"))
+            road = load_map(map_id)
         except Exception as exc:  # noqa: BLE001 - YAML syntax, missing keys, wrong types: all user errors
-            raise ConfigError(f"world: parameter map_id {p('map_id')!r}: {type(exc).__name__}: "
+            raise ConfigError(f"world: parameter map_id {map_id!r}: {type(exc).__name__}: "
                               f"{one_line(exc)}") from None
         self.dropped: dict = {}
         self.world = World(road)
@@ -113,7 +106,6 @@ class WorldNode(Node):
                                  guarded(self, I.TOPIC_COMMAND, self._on_command, self.dropped), I.STATE_QOS)
         self.create_service(Trigger, "~/reset", self._on_reset)
 
-        clock_file = str(p("clock_file"))
         self.clock = RunClock(self.dt_ns, None if clock_file == NO_FILE else
                               (clock_file or default_clock_file()),
                               warning=lambda m: self.get_logger().warning(m))
@@ -137,7 +129,7 @@ class WorldNode(Node):
             self.create_timer(self.world.dt / self.rate_factor, self._realtime_step, clock=steady)
         if self.goal_resend_period > 0.0:
             self.create_timer(self.goal_resend_period / 2.0, self._resend_goal, clock=steady)
-        if p("autostart"):
+        if autostart:
             self.reset_episode()
 
     # ------------------------------------------------------------------ parameters
@@ -155,15 +147,11 @@ class WorldNode(Node):
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         """Run-time changes are applied or refused with a reason, never accepted and ignored:
-        the scenario.* parameters are read at each reset (how the curriculum picks episodes);
-        every other parameter is read once at start-up."""
+        the scenario.* parameters are read at each reset (how the curriculum picks episodes) and
+        checked here; every other parameter is read-only (read once at start-up), which rclpy
+        refuses before this callback."""
         cur = dict(zip(("scenario.n_sv", "scenario.task", "scenario.seed"), self._scenario_params()))
-        for prm in params:
-            if prm.name not in cur:
-                return SetParametersResult(successful=False, reason=f"{prm.name} is read at start-up: restart "
-                                                                    "the world to change it (only scenario.* "
-                                                                    "change at run time)")
-            cur[prm.name] = prm.value
+        cur.update({prm.name: prm.value for prm in params if prm.name in cur})
         try:
             self._check_scenario(tuple(cur.values()))
         except (ValueError, TypeError) as exc:

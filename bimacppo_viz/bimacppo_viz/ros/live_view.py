@@ -15,13 +15,12 @@ default must not expose the graph to the network); a port already in use is a on
 from __future__ import annotations
 
 import numpy as np
-from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.validate_topic_name import validate_topic_name
 
 from bimacppo_interfaces import contract as I
 from bimacppo_interfaces.contract import route_from_markers
-from bimacppo_ros_common.params import ConfigError
+from bimacppo_ros_common.params import ConfigError, declare
 from bimacppo_ros_common.runtime import guarded, one_line, run_single
 from bimacppo_sim.config import WorldConfig
 from bimacppo_sim.road import available_maps, load_map
@@ -60,17 +59,15 @@ def road_lanes(road) -> list:
 class LiveViewNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self.declare_parameter("host", DEFAULT_HOST, ParameterDescriptor(
-            description="address the WebSocket server binds to (0.0.0.0 = every interface)"))
-        self.declare_parameter("port", DEFAULT_PORT, ParameterDescriptor(
-            description="WebSocket port (0 = any free port, logged at start)",
-            integer_range=[IntegerRange(from_value=0, to_value=65535, step=1)]))
-        self.declare_parameter("map_id", "dual_lane_4way", ParameterDescriptor(
-            description=f"map drawn under the scene: {available_maps()} or a YAML path; '' = none"))
+        host = str(declare(self, "host", DEFAULT_HOST, "address the WebSocket server binds to (0.0.0.0 = every "
+                                                       "interface)")).strip()
+        port = declare(self, "port", DEFAULT_PORT, "WebSocket port (0 = any free port, logged at start)",
+                       lo=0, hi=65535)
+        declare(self, "map_id", "dual_lane_4way", f"map drawn under the scene: {available_maps()} or a YAML path; "
+                                                  "'' = none")
         for name, topic in TOPIC_PARAMETERS.items():
-            self.declare_parameter(name, topic, ParameterDescriptor(description=f"topic (default {topic})"))
+            declare(self, name, topic, f"topic read instead of the contract's {topic}")
         g = lambda n: self.get_parameter(n).value  # noqa: E731
-        host, port = str(g("host")).strip(), int(g("port"))
         if not host:
             raise ConfigError(f"{NODE_NAME}: parameter host must not be empty")
         topics = {n: str(g(n)) for n in TOPIC_PARAMETERS}
