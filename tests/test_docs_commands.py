@@ -32,7 +32,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, load_script
 
 DOCS = ("README.md", "docs/ros.md", "docs/live-view.md")
 PROSE_DOCS = ("docs/ros.md",)
@@ -537,9 +537,7 @@ def test_nodes_print_their_usage_for_help_and_do_not_start(module, tmp_path):
 def test_parameters_page_is_the_nodes_declarations():
     """docs/parameters.md is what scripts/parameter_tables.py prints from the nodes' declare()
     calls: every node executable is on it, and it changes when a parameter does."""
-    spec = importlib.util.spec_from_file_location("parameter_tables", REPO / "scripts" / "parameter_tables.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("parameter_tables")
     nodes = {exe for exe, (_, target) in console_scripts().items() if is_node_executable(target)}
     assert nodes == {exe for exe, _ in mod.NODES}, nodes ^ {exe for exe, _ in mod.NODES}
     for exe, module in mod.NODES:

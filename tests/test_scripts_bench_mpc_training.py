@@ -1,18 +1,14 @@
 """scripts/bench_mpc_training.py: it records every problem the batched env hands the NMPC (per
 slot, in order) and its replay with solve() sees the same problems the batch solved."""
-import importlib.util
 import re
 
 import numpy as np
 
-from conftest import REPO
+from conftest import load_script
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("bench_mpc_training", REPO / "scripts" / "bench_mpc_training.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("bench_mpc_training")
 
 
 def test_recording_keeps_every_batch_problem_per_slot_with_episode_starts():

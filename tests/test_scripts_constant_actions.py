@@ -1,16 +1,13 @@
 """scripts/constant_actions.py: one row per waypoint, one cell per speed, counts that add up to
 the episodes, and constant actions that really differ in outcome (the far waypoint at full speed
 and WP0 at 0 m/s cannot both end like the middle of the table)."""
-import importlib.util
 import re
 
-from conftest import REPO
+from conftest import load_script
 
 
 def test_constant_action_table_counts_every_episode_of_every_action(capsys):
-    spec = importlib.util.spec_from_file_location("constant_actions", REPO / "scripts" / "constant_actions.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("constant_actions")
     assert mod.main(["--task", "right", "--n-sv", "0", "--episodes", "2"]) == 0
     rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| WP")]
     assert [r.split("|")[1].strip() for r in rows] == [f"WP{k}" for k in range(5)]

@@ -1,19 +1,15 @@
 """scripts/failure_causes.py: an episode's final info names what the EV collided with, an EV
 that cuts across the kerb counts as off the road (not as an SV collision), and the table counts
 every episode of every task."""
-import importlib.util
 import re
 
 import numpy as np
 
-from conftest import REPO
+from conftest import REPO, load_script
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("failure_causes", REPO / "scripts" / "failure_causes.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("failure_causes")
 
 
 def test_a_kerb_crossing_is_off_road_and_an_sv_hit_names_the_sv():

@@ -1,10 +1,9 @@
 """scripts/set_action_selection.py: a copy of a policy file that records how it acts, the
 source untouched, and one error line (exit 2) for an existing output or an unusable source."""
-import importlib.util
 
 import numpy as np
 
-from conftest import REPO
+from conftest import load_script
 from bimacppo_learning.checkpoint import export_policy
 from bimacppo_learning.ppo import PPO
 from bimacppo_planner.agent import load_policy
@@ -12,11 +11,7 @@ from bimacppo_planner.decision import EnvConfig
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("set_action_selection",
-                                                  REPO / "scripts" / "set_action_selection.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("set_action_selection")
 
 
 def test_the_copy_records_the_selection_and_keeps_the_weights(tmp_path, capsys):
