@@ -82,3 +82,39 @@ def test_mean_counts_for_table1():
     assert "| 0 | 3.0 | 0.0 | 1.5 | 0.0 |" in ex.counts_markdown(ex.mean_counts(logs))
 
 
+
+
+def test_success_matrix_needs_every_cell_of_every_run():
+    from bimacppo_learning.experiments.stats import success_matrix
+
+    t1 = {(0, 0): (100.0, 0.0, 0.0), (0, 3): (90.0, 10.0, 0.0)}
+    t2 = {(0, 0): (80.0, 20.0, 0.0), (0, 3): (70.0, 30.0, 0.0)}
+    assert success_matrix([t1, t2], [(0, 0), (0, 3)]).tolist() == [[100.0, 90.0], [80.0, 70.0]]
+    with pytest.raises(ValueError, match="every run needs every cell"):
+        success_matrix([t1, {(0, 0): (1.0, 0.0, 0.0)}], [(0, 0), (0, 3)])
+
+
+def test_iqm_drops_the_outer_quartiles_and_intervals_cover_it():
+    from bimacppo_learning.experiments.stats import iqm_intervals
+
+    x = np.array([[0.0], [50.0], [60.0], [100.0]])   # IQM of 4 scores: the middle two
+    e = iqm_intervals({"x": x, "one": np.array([[40.0, 60.0]])}, reps=300)
+    assert e["x"]["iqm"] == pytest.approx(55.0) and e["x"]["mean"] == pytest.approx(52.5)
+    lo, hi = e["x"]["iqm_ci"]
+    assert lo <= 55.0 <= hi and hi - lo > 0.0
+    assert e["one"]["runs"] == 1 and e["one"]["iqm_ci"] == (e["one"]["iqm"], e["one"]["iqm"])   # nothing to resample
+    again = iqm_intervals({"x": x, "one": np.array([[40.0, 60.0]])}, reps=300)
+    assert again == e                                                                        # seeded
+
+
+def test_probability_of_improvement_orders_methods():
+    from bimacppo_learning.experiments.stats import improvement_probability
+
+    rng = np.random.default_rng(1)
+    good, bad = rng.uniform(90, 100, (10, 6)), rng.uniform(20, 40, (3, 6))
+    assert improvement_probability(good, bad, reps=300)["p"] == 1.0
+    assert improvement_probability(bad, good, reps=300)["p"] == 0.0
+    same = improvement_probability(good, good, reps=300)
+    assert same["p"] == 0.5 and same["ci"][0] < 0.5 < same["ci"][1]
+    with pytest.raises(ValueError, match="same cells"):
+        improvement_probability(good, bad[:, :3])

@@ -113,6 +113,7 @@ class ReportSection:
     window: int = setting(lo=1)
     efficiency_fraction: float = setting(lo=0.0, hi=1.0, lo_open=True)
     figure_seed: int = setting(lo=0)
+    bootstrap_reps: int = setting(lo=100, hi=1_000_000)
 
 
 @config_class(EXPERIMENTS_YAML)

@@ -13,7 +13,8 @@ from bimacppo_common.conventions import TASKS
 
 from .config import METHOD_NAMES, ExperimentConfig
 from .runs import eval_is_fresh, read_eval_csv, read_history, run_status
-from .stats import aggregate_cells, episodes_to_fraction, mean_counts, mean_std_curve
+from .stats import (aggregate_cells, episodes_to_fraction, improvement_probability, iqm_intervals, mean_counts,
+                    mean_std_curve, success_matrix)
 from .train import train_argv
 
 
@@ -35,6 +36,28 @@ def table_markdown(rows: list[tuple[str, dict, int]], cfg: ExperimentConfig) -> 
                 c = agg.get((j, n))
                 cells.append("–" if c is None else " / ".join(pm(c["mean"][k], c["std"][k]) for k in range(3)))
             lines.append(f"| {name} | {t} | " + " | ".join(cells) + f" | {n_runs or 'scripted'} |")
+    return "\n".join(lines)
+
+
+def aggregate_markdown(scores: Mapping[str, list], cfg: ExperimentConfig, reps: int) -> str:
+    """Success aggregated over training seeds x evaluation cells with rliable: IQM and mean, each
+    with its stratified bootstrap 95 % interval, and the probability that BiM-ACPPO improves on
+    each other row (a scripted driver is one run)."""
+    cells = [(TASKS.index(t), n) for t in cfg.evaluation.tasks for n in cfg.evaluation.n_sv]
+    mats = {name: success_matrix(tables, cells) for name, tables in scores.items()}
+    est = iqm_intervals(mats, reps=reps)
+    lines = [f"Success (%) over runs x {len(cells)} cells (rliable, stratified bootstrap, {reps} resamples, "
+             "95 % intervals):", "",
+             "| method | runs | IQM [95 % CI] | mean [95 % CI] | P(BiM-ACPPO > method) [95 % CI] |",
+             "|---|---|---|---|---|"]
+    ours = METHOD_NAMES["bimab"]
+    for name, e in est.items():
+        poi = "–"
+        if ours in mats and name != ours:
+            pr = improvement_probability(mats[ours], mats[name], reps=reps)
+            poi = f"{pr['p']:.2f} [{pr['ci'][0]:.2f}, {pr['ci'][1]:.2f}]"
+        lines.append(f"| {name} | {e['runs']} | {e['iqm']:.1f} [{e['iqm_ci'][0]:.1f}, {e['iqm_ci'][1]:.1f}] | "
+                     f"{e['mean']:.1f} [{e['mean_ci'][0]:.1f}, {e['mean_ci'][1]:.1f}] | {poi} |")
     return "\n".join(lines)
 
 
@@ -95,7 +118,7 @@ def report(cfg: ExperimentConfig, config_arg: str | None = None) -> dict:
                           ("Table III: zero-shot on", cfg.zero_shot_map)):
         if map_id is None:
             continue
-        rows = []
+        rows, scores = [], {}
         for m in cfg.methods:
             tables = []
             for s in cfg.seeds:
@@ -108,16 +131,21 @@ def report(cfg: ExperimentConfig, config_arg: str | None = None) -> dict:
                     missing.append(f"evaluation of `{m}-s{s}` on `{map_id}` (`{p}`)")
             if tables:
                 rows.append((METHOD_NAMES[m], aggregate_cells(tables), len(tables)))
+                scores[METHOD_NAMES[m]] = tables
         for d in cfg.evaluation.reference_drivers:
             p = cfg.reference_prefix(d, map_id).with_suffix(".csv")
             if eval_is_fresh(cfg, p, None):
-                rows.append((METHOD_NAMES[d], aggregate_cells([read_eval_csv(p)]), 0))
+                table = read_eval_csv(p)
+                rows.append((METHOD_NAMES[d], aggregate_cells([table]), 0))
+                scores[METHOD_NAMES[d]] = [table]
             else:
                 missing.append(f"scripted driver `{d}` on `{map_id}` (`{p}`)")
         out += ["", f"## {title} `{map_id}`", ""]
         out.append(table_markdown(rows, cfg) if rows else "_no evaluated runs yet_")
         out.append("")
         out.append("`seeds` = training seeds averaged; scripted drivers are deterministic (one evaluation).")
+        if scores:
+            out += ["", aggregate_markdown(scores, cfg, r.bootstrap_reps)]
     # --- Table I, Figs. 5-6
     bimab = [s for s in cfg.seeds if ("bimab", s) in done]
     out += ["", "## Table I: BiMAB sampled counts (mean over BiM-ACPPO seeds)", ""]
