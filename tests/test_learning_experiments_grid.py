@@ -88,12 +88,13 @@ def test_all_trains_evaluates_finetunes_and_reports(pipeline):
     assert ex.last_episode(cfg.overtake_dir(0)) == 2
     text = (d / "docs" / "results.md").read_text()
     for needle in ("Table II", "Table III", "Table I", "| BiM-ACPPO | left |", "| Random CPPO | left |",
-                   '| scripted "go" | left |', "Nothing: every run", "IQM [95 % CI]"):
+                   '| scripted "go" | left |', "| random policy | left |", "Nothing: every run", "IQM [95 % CI]"):
         assert needle in text
     # the rliable rows: every method and driver, BiM-ACPPO's improvement over each other row
     agg = [ln for ln in text.splitlines() if ln.startswith("| ") and ln.count("[") >= 2]
     assert any(ln.startswith("| Random CPPO | 1 |") and ln.rstrip(" |").endswith("]") for ln in agg), agg
     assert any(ln.startswith("| BiM-ACPPO | 1 |") and ln.endswith("| – |") for ln in agg), agg
+    assert any(ln.startswith("| random policy | 1 |") for ln in agg), agg
     for name in ("fig5_clusters", "fig6_arms", "success"):
         assert (d / "docs" / "img" / f"exp_{name}.png").is_file()
 

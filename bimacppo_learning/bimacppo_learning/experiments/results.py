@@ -39,6 +39,21 @@ def table_markdown(rows: list[tuple[str, dict, int]], cfg: ExperimentConfig) -> 
     return "\n".join(lines)
 
 
+RANDOM_POLICY = "random policy"
+
+
+def random_policy_table(cfg: ExperimentConfig, done: Mapping, map_id: str):
+    """The uniform random policy's cells on ``map_id``: ``bimacppo-evaluate`` writes them next to
+    every policy's evaluation (``<prefix>_random.csv``, same scenarios); the first evaluated run's
+    file is used (every run of a grid shares the env config, so they agree). None if none exists."""
+    for key in sorted(done):
+        prefix = cfg.eval_prefix(done[key].run_dir, map_id)
+        path = prefix.with_name(prefix.name + "_random.csv")
+        if path.is_file():
+            return read_eval_csv(path)
+    return None
+
+
 def aggregate_markdown(scores: Mapping[str, list], cfg: ExperimentConfig, reps: int) -> str:
     """Success aggregated over training seeds x evaluation cells with rliable: IQM and mean, each
     with its stratified bootstrap 95 % interval, and the probability that BiM-ACPPO improves on
@@ -140,10 +155,16 @@ def report(cfg: ExperimentConfig, config_arg: str | None = None) -> dict:
                 scores[METHOD_NAMES[d]] = [table]
             else:
                 missing.append(f"scripted driver `{d}` on `{map_id}` (`{p}`)")
+        rand = random_policy_table(cfg, done, map_id)
+        if rand is not None:
+            rows.append((RANDOM_POLICY, aggregate_cells([rand]), "one evaluation"))
+            scores[RANDOM_POLICY] = [rand]
         out += ["", f"## {title} `{map_id}`", ""]
         out.append(table_markdown(rows, cfg) if rows else "_no evaluated runs yet_")
         out.append("")
-        out.append("`seeds` = training seeds averaged; scripted drivers are deterministic (one evaluation).")
+        out.append("`seeds` = training seeds averaged; scripted drivers are deterministic (one evaluation); "
+                   f"the {RANDOM_POLICY} acts uniformly at random on the same scenarios (one evaluation, written "
+                   "with the first evaluated run's).")
         if scores:
             out += ["", aggregate_markdown(scores, cfg, r.bootstrap_reps)]
     # --- Table I, Figs. 5-6
