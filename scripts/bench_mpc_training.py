@@ -86,8 +86,7 @@ def per_problem(cfg, per_slot):
     total = sum(len(s) for s in per_slot)
     with tqdm(total=total, desc="solve() one by one", unit="problem", file=sys.stderr) as bar:
         for problems in per_slot:
-            ctrl.reset()
-            for x0, xr, up, new in problems:
+            for x0, xr, up, new in problems:   # each slot's first problem starts an episode
                 if new:
                     ctrl.reset()
                 t0 = time.perf_counter()

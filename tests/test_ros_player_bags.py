@@ -338,11 +338,15 @@ def test_recorder_writes_rosbag2_serialized_metadata(node, tmp_path):
     with open(path, "rb") as f:
         reader = make_reader(f)
         records = [m for m in reader.iter_metadata() if m.name == "rosbag2"]
+        log_times = [msg.log_time for _, _, msg in reader.iter_messages()]
     assert records and all("serialized_metadata" in m.metadata for m in records)
     final = yaml.safe_load(records[-1].metadata["serialized_metadata"])
     assert final["version"] == 9 and final["storage_identifier"] == "mcap"
     assert final["ros_distro"] == "jazzy" and final["relative_file_paths"] == ["rec.mcap"]
-    assert final["message_count"] == 25 and final["duration"]["nanoseconds"] > 0
+    # the bag's own span, as rosbag2 computes it: from the first to the last message's log time
+    assert final["message_count"] == 25 == len(log_times)
+    assert final["starting_time"]["nanoseconds_since_epoch"] == min(log_times)
+    assert final["duration"]["nanoseconds"] == max(log_times) - min(log_times)
     (topic,) = final["topics_with_message_count"]
     assert topic["message_count"] == 25 and topic["topic_metadata"]["name"] == I.TOPIC_EGO_ODOM
     assert topic["topic_metadata"]["type"] == ODOM

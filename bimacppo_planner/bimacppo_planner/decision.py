@@ -257,15 +257,14 @@ class WaypointTracker:
         qx, qy, left = px, py, float(d)
         psi = float(r[i, 2])
         while left > 0.0:
+            psi = float(r[i, 2])          # the heading of the segment being walked
             seg = math.hypot(r[i, 0] - qx, r[i, 1] - qy)
             if seg >= left:
                 t = left / seg
                 qx, qy = qx + t * (r[i, 0] - qx), qy + t * (r[i, 1] - qy)
-                psi = float(r[i, 2])
                 break
             left -= seg
             qx, qy = float(r[i, 0]), float(r[i, 1])
-            psi = float(r[i, 2])
             if i == m:
                 break
             i += 1
