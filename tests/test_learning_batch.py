@@ -280,3 +280,44 @@ def test_threat_speed_shaping_prices_only_threatened_approaches_too_fast_to_stop
         kinds["threatened_but_can_stop"] += int(np.sum(threat & ~too_fast))
         assert r1 - r2 == pytest.approx(price / every * priced, abs=1e-9)
     assert kinds["priced"] > 0 and kinds["threatened_but_can_stop"] > 0, kinds
+
+
+def test_headway_shaping_prices_the_ticks_closing_on_the_lead_too_fast_to_stop(monkeypatch):
+    """The same overtaking scenarios and actions with and without the headway term: the
+    trajectories are the same, and the return is lower by exactly |headway| / decision_every per
+    tick that began with ``closing_on_lead`` true. Driving at 8 m/s in the lane meets both kinds
+    of tick (closing too fast on a slow SV ahead, and not yet)."""
+    import bimacppo_learning.batch as batch_mod
+
+    base = EXT.to_dict()
+    price = -0.5
+    shaped = EnvConfig.from_dict({**base, "reward": {**base["reward"], "headway": price}})
+    plain = EnvConfig.from_dict(base)
+    every = shaped.action.decision_every
+    real = batch_mod.closing_on_lead
+    kinds = {"priced": 0, "not": 0}
+    for k in range(4):
+        runs = []
+        for cfg in (shaped, plain):
+            log = []
+
+            def test(world, tcfg):
+                out = real(world, tcfg)
+                log.append(out)
+                return out
+            monkeypatch.setattr(batch_mod, "closing_on_lead", test)
+            b = IntersectionBatch(1, map_id="three_lane_straight", config=cfg, slow_svs=2)
+            b.reset(0, seed=k, options={"n_sv": 3, "task": "straight", "n_slow": 2})
+            for _ in range(60):
+                _, _, te, tr, _ = b.step(np.array([[4, 4, 1]]))
+                if te[0] or tr[0]:
+                    break
+            runs.append((b.returns[0], b.worlds[0].ego_tuple(), list(log)))
+        monkeypatch.setattr(batch_mod, "closing_on_lead", real)
+        (r1, ego1, log1), (r2, ego2, _) = runs
+        assert ego1 == ego2
+        priced = int(np.sum(log1))
+        kinds["priced"] += priced
+        kinds["not"] += len(log1) - priced
+        assert r1 - r2 == pytest.approx(price / every * priced, abs=1e-9)
+    assert kinds["priced"] > 0 and kinds["not"] > 0, kinds

@@ -267,6 +267,27 @@ def test_a_fine_tune_may_change_the_reward_when_told_but_a_resume_may_not(traine
     assert _snapshot(run) == before
 
 
+def test_a_fine_tune_may_change_how_actions_decode_only_when_told(trained, tmp_path, env_yaml, capsys):
+    """How A3 decodes is part of the task: another action section is refused for --init-policy
+    unless --fine-tune-action says so (the error names the field and the flag); with it the run
+    records the new decoding; the heads' sizes are compared all the same; --resume keeps its run's."""
+    _, cfg, run = trained
+    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
+    ev = env_yaml("action:\n  lane_change_from: ev\n")
+    out = tmp_path / "ev"
+    base = ["--episodes", "2", "--ppo-config", str(cfg), "--no-progress", "--init-policy", str(ckpt)]
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(ev)]) == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "action.lane_change_from: route != ev" in line and "--fine-tune-action" in line and not out.exists()
+    fewer = env_yaml("action:\n  lane_change_from: ev\n  speeds: [0.0, 4.0, 8.0]\n")
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(fewer), "--fine-tune-action"]) == 2
+    assert "nvec" in _one_error_line(capsys.readouterr().err, "bimacppo-train") and not out.exists()
+    assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "x"), "--fine-tune-action"]) == 2
+    assert "needs --init-policy" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(ev), "--fine-tune-action"]) == 0
+    assert json.loads((out / "run.json").read_text())["env_config"]["action"]["lane_change_from"] == "ev"
+
+
 def test_report_refuses_a_bad_window_on_one_line(trained, tmp_path, capsys):
     from bimacppo_learning.report import main as report_main
 

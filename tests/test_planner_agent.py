@@ -156,3 +156,32 @@ def test_planner_rejects_bad_input(policy_file, tmp_path):
     export_policy(PPO(10, (5, 5, 3), seed=0), wrong)
     with pytest.raises(CheckpointError, match="obs_dim"):
         HighLevelPlanner.load(wrong)
+
+
+def test_planner_decodes_lane_changes_from_the_evs_lane_as_the_env_does(tmp_path):
+    """The three-lane road with A3 counted from the EV's lane (the overtaking fine-tune's
+    decoding): the planner, given the raw states and its own route, sends the env's x_IMR at
+    every decision while two right changes are held and then "keep" holds the far lane."""
+    from conftest import REPO
+    cfg = EnvConfig.load(REPO / "studies/config/env_wait_chord_junction_road_overtake_headway.yaml")
+    assert cfg.action.lane_change_from == "ev"
+    path = tmp_path / "policy.pt"
+    export_policy(PPO(cfg.obs_dim, cfg.nvec, seed=3), path)
+    env = IntersectionEnv("three_lane_straight", config=cfg)
+    hp = HighLevelPlanner(load_policy(path), env.road, config=cfg)
+    script = [np.array([4, 3, 2])] * 20 + [np.array([4, 3, 1])] * 10
+    hp._act = lambda obs: script[len(seen)]
+    seed = next(s for s in range(100) if env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": s})
+                and env.world.start_lane == "road_0")
+    obs, _ = env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": seed})
+    hp.reset(env.world.ego, env.world.goal)
+    seen = []
+    for action in script:
+        x_imr, info = hp.step(env.world.ego, env.world.sv_states())
+        np.testing.assert_array_equal(info["obs"], obs)
+        seen.append(info["lane_change"])
+        obs, _, term, trunc, einfo = env.step(action)
+        np.testing.assert_array_equal(einfo["x_imr"], x_imr)
+        assert einfo["lane_change"] == info["lane_change"] and not (term or trunc)
+    lanes_over = (env.world.ego[0] - env.road.lane_point("road_0", 0.0)[0]) / env.road.lane_width
+    assert abs(lanes_over - 2.0) < 0.15 and any(seen[:20]) and not any(seen[20:])

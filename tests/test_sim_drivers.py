@@ -2,7 +2,10 @@
 term pays on must separate the "yield" rule (enters only a clear junction) from "go"."""
 from bimacppo_sim import Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
-from bimacppo_sim.drivers import junction_distance, junction_threatened, make_driver, stop_line_distance
+import math
+
+from bimacppo_sim.drivers import (closing_on_lead, junction_distance, junction_threatened, make_driver,
+                                  stop_line_distance)
 
 
 def _threatened_entries(driver: str, episodes: int) -> tuple[int, int]:
@@ -51,3 +54,28 @@ def test_time_to_box_is_zero_inside_infinite_when_leaving_and_gap_over_speed_oth
     assert road.time_to_box(0.0, -H - 1.0, 0.0, math.pi / 2) == 1.0 / road.BOX_SPEED_FLOOR
     straight = load_map("three_lane_straight")
     assert straight.box_gap(0.0, 0.0) == math.inf and straight.time_to_box(0.0, 0.0, 5.0, 0.0) == math.inf
+
+
+def test_closing_on_lead_tests_the_stop_behind_the_sv_ahead_in_the_lane():
+    """v^2 - v_lead^2 > 2 b (gap - margin), gap bumper to bumper, for the nearest SV ahead within
+    half a lane of the EV's heading line; nothing for an SV beside, behind, faster or inactive."""
+    road = load_map("three_lane_straight")
+    w, cfg = World(road), DriverConfig.load()
+    w.reset(Scenario(n_sv=1, task="straight", seed=3))
+    sv = w.svs[0]
+    length, b, margin = w.cfg.vehicle.length, cfg.stop_decel, cfg.stop_margin
+
+    def place(v, ahead, v_lead, side=0.0, active=True):
+        w._ev[:] = [0.0, 0.0, v, math.pi / 2]
+        sv.x, sv.y, sv.v, sv.psi, sv.active = side, ahead, v_lead, math.pi / 2, active
+        return closing_on_lead(w, cfg)
+
+    v, v_lead = 8.0, 2.0
+    stop_gap = (v * v - v_lead * v_lead) / (2.0 * b) + margin + length   # centre distance of the boundary
+    assert place(v, stop_gap - 0.1, v_lead) and not place(v, stop_gap + 0.1, v_lead)
+    assert not place(v, 6.0, 9.0)                                  # the lead is faster
+    assert not place(v, 6.0, v_lead, side=road.lane_width)          # one lane over
+    assert place(v, 6.0, v_lead, side=0.4 * road.lane_width)        # within half a lane
+    assert not place(v, -6.0, v_lead)                               # behind
+    assert not place(v, 6.0, v_lead, active=False)
+    assert not place(0.0, 6.0, 0.0)                                 # standing behind a standing SV

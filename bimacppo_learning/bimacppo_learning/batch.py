@@ -33,7 +33,7 @@ from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, idle_share, observe, step_reward
 from bimacppo_sim import Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
-from bimacppo_sim.drivers import junction_distance, junction_threatened
+from bimacppo_sim.drivers import closing_on_lead, junction_distance, junction_threatened
 
 RESET_OPTIONS = ("n_sv", "task", "scenario_seed", "n_slow")
 SEED_HIGH = 2 ** 31 - 1
@@ -220,6 +220,8 @@ class IntersectionBatch:
                 if rcfg.threat_speed != 0.0 and threatened and X0[i, 2] > rcfg.idle_speed and \
                         X0[i, 2] ** 2 > 2.0 * tcfg.stop_decel * max(junction_distance(self.worlds[i]), 0.0):
                     shaping[i] += rcfg.threat_speed / acfg.decision_every
+                if rcfg.headway != 0.0 and closing_on_lead(self.worlds[i], tcfg):
+                    shaping[i] += rcfg.headway / acfg.decision_every
                 res = self.worlds[i].step(sol.u[i])
                 if not self.crossed[i] and junction_distance(self.worlds[i]) <= 0.0:
                     self.crossed[i] = True

@@ -58,6 +58,9 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--fine-tune-reward", action="store_true",
                    help="with --init-policy: the fine-tune trains with the reward section of --env-config; "
                         "only observation and action must match the checkpoint's")
+    p.add_argument("--fine-tune-action", action="store_true",
+                   help="with --init-policy: the fine-tune decodes actions with the action section of "
+                        "--env-config (e.g. action.lane_change_from); the action heads' sizes must still match")
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast", help="NMPC solver in the loop")
     p.add_argument("--mpc-config", type=Path, default=None,
                    help="YAML overlaying bimacppo_mpc/config/mpc.yaml (lists only what it changes, e.g. "
@@ -90,7 +93,9 @@ def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_c
     not compared, a warning); None if it fits. ``mpc_cfg`` None skips the MPC comparison. A
     resume compares every section (it continues one run); a fine-tune that says so
     (--fine-tune-reward) only what the policy sees and does, observation and action, because
-    its reward is then the new task's to choose."""
+    its reward is then the new task's to choose; one that says --fine-tune-action leaves the
+    action section out too (the heads' sizes are compared whatever the sections), because how
+    an action decodes is then also the new task's."""
     from .checkpoint import CheckpointError, config_differences, mpc_config_of
 
     if (int(obs_dim), tuple(int(n) for n in nvec)) != (env_cfg.obs_dim, tuple(env_cfg.nvec)):
@@ -176,10 +181,13 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
             path = args.init_policy
             meta = run_meta_of(load_checkpoint(path), path)
             agent = load_agent(path)
-            sections = ("observation", "action") if args.fine_tune_reward else ("observation", "action", "reward")
+            sections = tuple(name for name, free in (("observation", False), ("action", args.fine_tune_action),
+                                                     ("reward", args.fine_tune_reward)) if not free)
             why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg, mpc_cfg, sections)
             if why and not args.fine_tune_reward and "reward." in why:
-                why += " (--fine-tune-reward lets a fine-tune change only the reward)"
+                why += " (--fine-tune-reward lets a fine-tune change the reward)"
+            if why and not args.fine_tune_action and "action." in why:
+                why += " (--fine-tune-action lets a fine-tune change how actions decode)"
             if why:
                 return why, None
     except CheckpointError as exc:
@@ -206,6 +214,8 @@ def train_main(argv=None) -> int:
         return fail(prog, f"--slow-svs must be in 0..3 (at most N_sv^max SVs), got {args.slow_svs}")
     if args.fine_tune_reward and args.init_policy is None:
         return fail(prog, "--fine-tune-reward needs --init-policy (a resume keeps its run's reward)")
+    if args.fine_tune_action and args.init_policy is None:
+        return fail(prog, "--fine-tune-action needs --init-policy (a resume keeps its run's action decoding)")
     try:
         env_cfg = EnvConfig.load(args.env_config)
         mpc_cfg = MPCConfig.load(args.mpc_config)

@@ -44,6 +44,8 @@ CHORD_RULES = ("route", "road")
 #: spacing (m) of the points at which the "road" chord rule tests the corridor; well under the
 #: kerb radius of any map, so no corner fillet fits between two tests
 CHORD_STEP = 0.5
+#: which lane A3 counts from: the lane of the route's waypoint, or the lane the EV is in (decode_action)
+LANE_CHANGE_FROM = ("route", "ev")
 
 
 @config_class(ENV_YAML, "action")
@@ -57,6 +59,7 @@ class ActionConfig:
     chord_tol: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
     chord_rule: str = setting(choices=CHORD_RULES, absent="route")   # what the chord limit tests, see env.yaml
     min_lookahead: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
+    lane_change_from: str = setting(choices=LANE_CHANGE_FROM, absent="route")   # the lane A3 counts from, see env.yaml
 
     def _check(self) -> None:
         if self.lane_change != (-1, 0, 1):
@@ -77,6 +80,7 @@ class RewardConfig:
     threat_entry: float = setting(hi=0.0)
     idle_clear: float = setting(hi=0.0)
     threat_speed: float = setting(hi=0.0)
+    headway: float = setting(hi=0.0, absent=0.0)
     idle_speed: float = setting(lo=0.0)
     go_speed: float = setting(lo=0.0)
     lane_change: float
@@ -312,12 +316,38 @@ def corridor_on_road(x0: float, y0: float, x1: float, y1: float, half_width: flo
     return True
 
 
+def lanes_across(lateral_point, x: float, y: float, psi: float) -> dict[int, tuple[float, float, float, float]]:
+    """Every same-direction lane beside the point (x, y, psi) of a lane centre, found by walking
+    ``lateral_point`` left and right: {n: (x, y, psi, offset)}, n lanes to the right (n < 0: to the
+    left, 0: the point itself), offset the lane centre's signed distance from the point, left
+    positive. Inside a junction ``lateral_point`` finds nothing, and only the point itself is there."""
+    c, s = math.cos(psi), math.sin(psi)
+    out = {0: (x, y, psi, 0.0)}
+    for side in (-1, 1):
+        px, py, ppsi, n = x, y, psi, 0
+        while True:
+            q = lateral_point(px, py, ppsi, side)
+            if q is None:
+                break
+            n += side
+            px, py, ppsi = float(q[0]), float(q[1]), float(q[2])
+            if n in out:     # a map whose neighbour links loop: stop at the first repeat
+                break
+            out[n] = (px, py, ppsi, -(px - x) * s + (py - y) * c)
+    return out
+
+
 def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_point,
                   ego=None, drivable=None) -> tuple[np.ndarray, bool]:
     """MultiDiscrete action -> x_IMR = [x, y, v, psi] (eq. 31), and whether a lane change was taken.
 
     ``lateral_point(x, y, psi, side)`` gives the matching point on the adjacent lane or None;
     where there is no adjacent lane the waypoint stays (and it does not count as a lane change).
+    A3 counts from the waypoint's own lane (``cfg.lane_change_from`` "route") or, with "ev", from
+    the lane beside the waypoint whose centre is nearest the EV's offset from its route
+    (``lanes_across``): "keep" then holds the lane the EV is in, and a change moves one lane
+    further from it. Mid-change, "the lane the EV is in" becomes the new one once the EV is
+    nearer its centre, so a held change completes and a second one continues from there.
     With ``cfg.zero_speed == "hold"`` a zero speed (A2 = 0 m/s) means "stop, facing along the
     route", whatever A1 and A3 say: x_IMR is at 0 m/s with the route's heading, at the EV's own
     position (``ego`` = [x, y, v, psi]; ``cfg.hold_decel`` None) or, with ``cfg.hold_decel`` set,
@@ -347,6 +377,15 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
         hx, hy, hpsi = tracker.ahead(float(ego[0]), float(ego[1]), v * v / (2.0 * cfg.hold_decel))
         return np.array([hx, hy, 0.0, hpsi], dtype=np.float64), False
     side = cfg.lane_change[a3]
+    from_ev = cfg.lane_change_from == "ev"
+    if from_ev:
+        if ego is None:
+            raise ValueError("action.lane_change_from 'ev' needs the EV pose (ego) to decode a lane change")
+        _, px, py = tracker.station(float(ego[0]), float(ego[1]))
+        rpsi = tracker.heading_here()
+        # the EV's signed offset from its route, left positive: the lane it is in is the one
+        # whose centre lies at the nearest offset from the waypoint
+        ev_off = -(float(ego[0]) - px) * math.sin(rpsi) + (float(ego[1]) - py) * math.cos(rpsi)
     road_rule = cfg.chord_tol is not None and cfg.chord_rule == "road"
     if cfg.chord_tol is not None:
         if ego is None:
@@ -359,7 +398,16 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     for k in range(a1, -1, -1):
         wx, wy, wpsi = (float(c) for c in cands[k])
         changed = False
-        if side != 0:
+        if from_ev:
+            lanes = lanes_across(lateral_point, wx, wy, wpsi)
+            here = min(lanes, key=lambda n: abs(lanes[n][3] - ev_off))
+            there = here + int(side)
+            if there != here and there in lanes:
+                changed = True
+            else:
+                there = here
+            wx, wy, wpsi = lanes[there][:3]
+        elif side != 0:
             p = lateral_point(wx, wy, wpsi, int(side))
             if p is not None:
                 wx, wy, wpsi = float(p[0]), float(p[1]), float(p[2])

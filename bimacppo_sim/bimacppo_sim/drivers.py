@@ -36,6 +36,31 @@ def junction_threatened(world, cfg: DriverConfig) -> bool:
     return False
 
 
+def closing_on_lead(world, cfg: DriverConfig) -> bool:
+    """Whether the EV closes on the SV ahead in its lane too fast to stop behind it: the nearest
+    active SV ahead of the EV's front (in the EV's frame) within half a lane width of its heading
+    line, whose speed along that heading is below the EV's by more than braking at ``stop_decel``
+    removes over the bumper-to-bumper gap less ``stop_margin``: v² − v_lead² > 2 b (gap − margin).
+    The same kind of test as the yield rule's stop before the junction, applied to a lead vehicle.
+    It reads the SVs' true states (training rewards only, never the policy's observation)."""
+    x, y, v, psi = world.ego_tuple()
+    c, s = math.cos(psi), math.sin(psi)
+    half = 0.5 * world.road.lane_width
+    length = world.cfg.vehicle.length
+    lead_dx, lead_v = math.inf, 0.0
+    for st, active in zip(world.sv_states(), world.sv_active):
+        if not active:
+            continue
+        dx = (st[0] - x) * c + (st[1] - y) * s
+        dy = -(st[0] - x) * s + (st[1] - y) * c
+        if 0.0 < dx < lead_dx and abs(dy) < half:
+            lead_dx, lead_v = dx, max(st[2] * math.cos(st[3] - psi), 0.0)
+    if not math.isfinite(lead_dx) or v <= lead_v:
+        return False
+    gap = max(lead_dx - length - cfg.stop_margin, 0.0)
+    return v * v - lead_v * lead_v > 2.0 * cfg.stop_decel * gap
+
+
 def junction_distance(world, y: float | None = None) -> float:
     """Distance from the EV's front bumper to the edge of the junction box (the EV approaches
     from the south); +inf on a map without a junction."""
