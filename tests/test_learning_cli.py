@@ -273,19 +273,19 @@ def test_a_fine_tune_may_change_how_actions_decode_only_when_told(trained, tmp_p
     records the new decoding; the heads' sizes are compared all the same; --resume keeps its run's."""
     _, cfg, run = trained
     ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
-    ev = env_yaml("action:\n  lane_change_from: ev\n")
-    out = tmp_path / "ev"
+    ev = env_yaml("action:\n  lane_change_from: chosen\n")
+    out = tmp_path / "chosen"
     base = ["--episodes", "2", "--ppo-config", str(cfg), "--no-progress", "--init-policy", str(ckpt)]
     assert train_main([*base, "--run-dir", str(out), "--env-config", str(ev)]) == 2
     line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
-    assert "action.lane_change_from: route != ev" in line and "--fine-tune-action" in line and not out.exists()
-    fewer = env_yaml("action:\n  lane_change_from: ev\n  speeds: [0.0, 4.0, 8.0]\n")
+    assert "action.lane_change_from: route != chosen" in line and "--fine-tune-action" in line and not out.exists()
+    fewer = env_yaml("action:\n  lane_change_from: chosen\n  speeds: [0.0, 4.0, 8.0]\n")
     assert train_main([*base, "--run-dir", str(out), "--env-config", str(fewer), "--fine-tune-action"]) == 2
     assert "nvec" in _one_error_line(capsys.readouterr().err, "bimacppo-train") and not out.exists()
     assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "x"), "--fine-tune-action"]) == 2
     assert "needs --init-policy" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
     assert train_main([*base, "--run-dir", str(out), "--env-config", str(ev), "--fine-tune-action"]) == 0
-    assert json.loads((out / "run.json").read_text())["env_config"]["action"]["lane_change_from"] == "ev"
+    assert json.loads((out / "run.json").read_text())["env_config"]["action"]["lane_change_from"] == "chosen"
 
 
 def test_report_refuses_a_bad_window_on_one_line(trained, tmp_path, capsys):

@@ -674,64 +674,83 @@ def test_lanes_across_walks_the_carriageway_and_finds_nothing_inside_a_junction(
     assert sorted(lanes_across(four.lateral_point, 0.0, 0.0, math.pi / 2)) == [0]   # the junction's centre
 
 
-def _three_lane_decode(acfg, ev_x, a3, a1=4):
+def _three_lane_tracker(acfg):
     from bimacppo_sim import load_map
     road = load_map("three_lane_straight")
     x0, y0, psi = road.lane_point("road_0", 10.0)
     route = np.array([road.lane_point("road_0", s) for s in np.arange(10.0, 120.0, 3.0)])
     tr = WaypointTracker.for_action(route, acfg)
-    ego = np.array([ev_x, y0 + 20.0, 6.0, psi])
-    tr.update(ego[0], ego[1])
-    x_imr, changed = decode_action([a1, 3, a3], tr, acfg, road.lateral_point, ego, road.drivable)
-    return x_imr, changed, x0, road.lane_width
+    return road, tr, x0, y0, psi
 
 
 @pytest.mark.parametrize("rule", ["route", "road"])
-def test_lane_changes_count_from_the_evs_lane_with_lane_change_from_ev(rule):
-    """Route lane 0 (leftmost) of the three-lane road. From the route (the default): "keep" is the
-    route's lane wherever the EV is and a change reaches one lane beside it. From the EV: "keep"
-    is the lane whose centre is nearest the EV, a change one lane further, none beyond the kerb."""
+def test_lane_changes_count_from_the_chosen_lane_with_lane_change_from_chosen(rule):
+    """Route lane 0 (leftmost) of the three-lane road, the EV in it. From the route (the default):
+    every decision's A3 counts from the route's lane, so "keep" goes back to it and two rights
+    reach lane 1 only. From the chosen lane: a change is remembered, "keep" holds it, two rights
+    reach lane 2, a third finds no lane (not a change), a left comes back one lane; a new
+    tracker (a new episode) starts on the route's lane."""
     base = EnvConfig.load(REPO_ENV_JUNCTION, overrides={"action.chord_rule": rule}).action
-    ev = dataclasses_replace(base, lane_change_from="ev")
+    chosen = dataclasses_replace(base, lane_change_from="chosen")
     keep, right, left = 1, 2, 0
-    x0 = _three_lane_decode(base, 0.0, keep)[2]
     w = 3.5
-    cases = [   # (EV's offset right of the route lane, A3) -> lane reached (route rule, EV rule), EV rule's changed
-        (0.0, keep, 0, 0, False), (0.0, right, 1, 1, True), (0.0, left, 0, 0, False),
-        (w, keep, 0, 1, False), (w, right, 1, 2, True), (w, left, 0, 0, True),
-        (2 * w, keep, 0, 2, False), (2 * w, right, 1, 2, False), (2 * w, left, 0, 1, True),
-        (0.45 * w, keep, 0, 0, False), (0.55 * w, keep, 0, 1, False),    # mid-change: the nearer centre
-    ]
-    for off, a3, lane_route, lane_ev, changed_ev in cases:
-        got, _, _, _ = _three_lane_decode(base, x0 + off, a3)
-        assert got[0] == pytest.approx(x0 + lane_route * w), (off, a3)
-        got, changed, _, _ = _three_lane_decode(ev, x0 + off, a3)
-        assert got[0] == pytest.approx(x0 + lane_ev * w) and changed == changed_ev, (off, a3)
-    with pytest.raises(ValueError, match="ego"):
-        decode_action([4, 3, 1], WaypointTracker.for_action(np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]]), ev),
-                      dataclasses_replace(ev, chord_tol=None), lambda *a: None)
+    script = [(keep, 0, 0, False), (right, 1, 1, True), (keep, 0, 1, False), (right, 1, 2, True),
+              (right, 1, 2, False), (keep, 0, 2, False), (left, 0, 1, True), (left, 0, 0, True),
+              (left, 0, 0, False)]
+    for acfg, col in ((base, 1), (chosen, 2)):
+        road, tr, x0, y0, psi = _three_lane_tracker(acfg)
+        ego = np.array([x0, y0 + 20.0, 6.0, psi])
+        tr.update(ego[0], ego[1])
+        for step in script:
+            got, changed = decode_action([4, 3, step[0]], tr, acfg, road.lateral_point, ego, road.drivable)
+            assert got[0] == pytest.approx(x0 + step[col] * w), (acfg.lane_change_from, step)
+            if acfg is chosen:
+                assert changed == step[3] and tr.lane == step[2], step
+        if acfg is chosen:
+            assert _three_lane_tracker(acfg)[1].lane == 0
 
 
-def test_two_held_right_changes_reach_the_far_lane_only_from_the_ev():
+def test_a_chosen_lane_returns_to_the_route_where_no_lane_lies_beside_it():
+    """Inside the junction no lane lies beside the route: the chosen lane clamps to the route's,
+    and stays there after the junction (it is not carried across to the exit arm)."""
+    from bimacppo_sim import Scenario, World, load_map
+    road = load_map("dual_lane_4way")
+    w = World(road)
+    w.reset(Scenario(n_sv=0, task="straight", seed=1))
+    acfg = dataclasses_replace(EnvConfig.load(REPO_ENV_JUNCTION).action, lane_change_from="chosen")
+    route = w.route
+    tr = WaypointTracker.for_action(route, acfg)
+    tr.lane = 1
+    j = int(np.argmin(np.hypot(route[:, 0], route[:, 1])))     # the route point nearest the centre
+    x, y, psi = route[j - 2]
+    tr.update(x, y)
+    got, changed = decode_action([0, 3, 1], tr, acfg, road.lateral_point, np.array([x, y, 6.0, psi]), road.drivable)
+    assert tr.lane == 0 and not changed
+    np.testing.assert_allclose(got[:2], tr.candidates()[0][:2])
+
+
+def test_two_right_decisions_reach_the_far_lane_only_from_the_chosen_lane():
     """Closed loop through the env and the NMPC on the empty three-lane road, EV starting in the
-    leftmost lane: A3 = right held for 6 s ends two lanes over with the changes counted from the
-    EV, one lane over (beside the route) with the changes counted from the route; then "keep"
-    stays in the far lane from the EV and goes back to the route's lane from the route."""
+    leftmost lane: two A3 = right decisions, then "keep" for 6 s, end two lanes over with the
+    changes counted from the chosen lane; counted from the route, held right for 6 s ends one lane
+    over (beside the route) and "keep" then goes back to the route's lane."""
     from bimacppo_learning.env import IntersectionEnv
+    runs = {"route": ((2, 20), (1, 10)), "chosen": ((2, 2), (1, 28))}
     ends = {}
-    for frm in ("route", "ev"):
+    for frm, script in runs.items():
         env = IntersectionEnv("three_lane_straight", config=EnvConfig.load(
             REPO_ENV_JUNCTION, overrides={"action.lane_change_from": frm}))
         seed = next(s for s in range(100) if (env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": s})
                                               and env.world.start_lane == "road_0"))
         env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": seed})
         x0 = env.world._ev[0]
-        lanes = []
-        for a3, decisions in ((2, 20), (1, 10)):
+        for a3, decisions in script:
             for _ in range(decisions):
                 _, _, term, trunc, _ = env.step(np.array([4, 3, a3]))
                 assert not (term or trunc)
-            lanes.append(round((env.world._ev[0] - x0) / env.road.lane_width, 1))
-        ends[frm] = lanes
-    want = {"route": [1.0, 0.0], "ev": [2.0, 2.0]}
+            if frm == "route":
+                ends.setdefault(frm, []).append(round((env.world._ev[0] - x0) / env.road.lane_width, 2))
+        if frm == "chosen":
+            ends[frm] = [round((env.world._ev[0] - x0) / env.road.lane_width, 2)]
+    want = {"route": [1.0, 0.0], "chosen": [2.0]}
     assert all(abs(a - b) <= 0.15 for k in want for a, b in zip(ends[k], want[k])), ends
