@@ -158,19 +158,20 @@ def test_planner_rejects_bad_input(policy_file, tmp_path):
         HighLevelPlanner.load(wrong)
 
 
-def test_planner_decodes_lane_changes_from_the_chosen_lane_as_the_env_does(tmp_path):
-    """The three-lane road with A3 counted from the chosen lane (the overtaking fine-tune's
-    decoding, whose lane is state kept over the episode): the planner, given the raw states and
-    its own route, sends the env's x_IMR at every decision through two right changes and the
-    "keep" decisions that hold the far lane."""
+@pytest.mark.parametrize("frm, rights", [("ev", 20), ("chosen", 2)])
+def test_planner_decodes_lane_changes_from_where_the_ev_drives_as_the_env_does(tmp_path, frm, rights):
+    """The three-lane road with A3 counted from the EV's lane or from the chosen lane (the latter
+    state kept over the episode): the planner, given the raw states and its own route, sends the
+    env's x_IMR at every decision through the right changes (held for 6 s from the EV's lane; two
+    decisions from the chosen lane) and the "keep" decisions that hold the far lane."""
     from conftest import REPO
-    cfg = EnvConfig.load(REPO / "studies/config/env_wait_chord_junction_road_overtake_headway.yaml")
-    assert cfg.action.lane_change_from == "chosen"
+    cfg = EnvConfig.load(REPO / f"studies/config/env_wait_chord_junction_road_overtake_{frm}.yaml")
+    assert cfg.action.lane_change_from == frm
     path = tmp_path / "policy.pt"
     export_policy(PPO(cfg.obs_dim, cfg.nvec, seed=3), path)
     env = IntersectionEnv("three_lane_straight", config=cfg)
     hp = HighLevelPlanner(load_policy(path), env.road, config=cfg)
-    script = [np.array([4, 3, 2])] * 2 + [np.array([4, 3, 1])] * 28
+    script = [np.array([4, 3, 2])] * rights + [np.array([4, 3, 1])] * (30 - rights)
     hp._act = lambda obs: script[len(seen)]
     seed = next(s for s in range(100) if env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": s})
                 and env.world.start_lane == "road_0")
@@ -185,4 +186,6 @@ def test_planner_decodes_lane_changes_from_the_chosen_lane_as_the_env_does(tmp_p
         np.testing.assert_array_equal(einfo["x_imr"], x_imr)
         assert einfo["lane_change"] == info["lane_change"] and not (term or trunc)
     lanes_over = (env.world.ego[0] - env.road.lane_point("road_0", 0.0)[0]) / env.road.lane_width
-    assert abs(lanes_over - 2.0) < 0.15 and all(seen[:2]) and not any(seen[2:])
+    assert abs(lanes_over - 2.0) < 0.15 and seen[0] and not any(seen[rights:])
+    if frm == "chosen":
+        assert all(seen[:rights])

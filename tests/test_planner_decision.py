@@ -729,13 +729,52 @@ def test_a_chosen_lane_returns_to_the_route_where_no_lane_lies_beside_it():
     np.testing.assert_allclose(got[:2], tr.candidates()[0][:2])
 
 
-def test_two_right_decisions_reach_the_far_lane_only_from_the_chosen_lane():
+def _three_lane_decode(acfg, ev_x, a3, a1=4):
+    from bimacppo_sim import load_map
+    road = load_map("three_lane_straight")
+    x0, y0, psi = road.lane_point("road_0", 10.0)
+    route = np.array([road.lane_point("road_0", s) for s in np.arange(10.0, 120.0, 3.0)])
+    tr = WaypointTracker.for_action(route, acfg)
+    ego = np.array([ev_x, y0 + 20.0, 6.0, psi])
+    tr.update(ego[0], ego[1])
+    x_imr, changed = decode_action([a1, 3, a3], tr, acfg, road.lateral_point, ego, road.drivable)
+    return x_imr, changed, x0, road.lane_width
+
+
+@pytest.mark.parametrize("rule", ["route", "road"])
+def test_lane_changes_count_from_the_evs_lane_with_lane_change_from_ev(rule):
+    """Route lane 0 (leftmost) of the three-lane road. From the route (the default): "keep" is the
+    route's lane wherever the EV is and a change reaches one lane beside it. From the EV: "keep"
+    is the lane whose centre is nearest the EV, a change one lane further, none beyond the kerb."""
+    base = EnvConfig.load(REPO_ENV_JUNCTION, overrides={"action.chord_rule": rule}).action
+    ev = dataclasses_replace(base, lane_change_from="ev")
+    keep, right, left = 1, 2, 0
+    x0 = _three_lane_decode(base, 0.0, keep)[2]
+    w = 3.5
+    cases = [   # (EV's offset right of the route lane, A3) -> lane reached (route rule, EV rule), EV rule's changed
+        (0.0, keep, 0, 0, False), (0.0, right, 1, 1, True), (0.0, left, 0, 0, False),
+        (w, keep, 0, 1, False), (w, right, 1, 2, True), (w, left, 0, 0, True),
+        (2 * w, keep, 0, 2, False), (2 * w, right, 1, 2, False), (2 * w, left, 0, 1, True),
+        (0.45 * w, keep, 0, 0, False), (0.55 * w, keep, 0, 1, False),    # mid-change: the nearer centre
+    ]
+    for off, a3, lane_route, lane_ev, changed_ev in cases:
+        got, _, _, _ = _three_lane_decode(base, x0 + off, a3)
+        assert got[0] == pytest.approx(x0 + lane_route * w), (off, a3)
+        got, changed, _, _ = _three_lane_decode(ev, x0 + off, a3)
+        assert got[0] == pytest.approx(x0 + lane_ev * w) and changed == changed_ev, (off, a3)
+    with pytest.raises(ValueError, match="ego"):
+        decode_action([4, 3, 1], WaypointTracker.for_action(np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]]), ev),
+                      dataclasses_replace(ev, chord_tol=None), lambda *a: None)
+
+
+def test_two_right_changes_reach_the_far_lane_only_from_the_evs_or_the_chosen_lane():
     """Closed loop through the env and the NMPC on the empty three-lane road, EV starting in the
     leftmost lane: two A3 = right decisions, then "keep" for 6 s, end two lanes over with the
-    changes counted from the chosen lane; counted from the route, held right for 6 s ends one lane
-    over (beside the route) and "keep" then goes back to the route's lane."""
+    changes counted from the chosen lane; held right for 6 s, the EV ends one lane over (beside
+    the route) with changes counted from the route, and "keep" then goes back to the route's
+    lane, two lanes over with changes counted from the EV's lane, and "keep" stays there."""
     from bimacppo_learning.env import IntersectionEnv
-    runs = {"route": ((2, 20), (1, 10)), "chosen": ((2, 2), (1, 28))}
+    runs = {"route": ((2, 20), (1, 10)), "ev": ((2, 20), (1, 10)), "chosen": ((2, 2), (1, 28))}
     ends = {}
     for frm, script in runs.items():
         env = IntersectionEnv("three_lane_straight", config=EnvConfig.load(
@@ -748,9 +787,9 @@ def test_two_right_decisions_reach_the_far_lane_only_from_the_chosen_lane():
             for _ in range(decisions):
                 _, _, term, trunc, _ = env.step(np.array([4, 3, a3]))
                 assert not (term or trunc)
-            if frm == "route":
+            if frm != "chosen":
                 ends.setdefault(frm, []).append(round((env.world._ev[0] - x0) / env.road.lane_width, 2))
         if frm == "chosen":
             ends[frm] = [round((env.world._ev[0] - x0) / env.road.lane_width, 2)]
-    want = {"route": [1.0, 0.0], "chosen": [2.0]}
+    want = {"route": [1.0, 0.0], "ev": [2.0, 2.0], "chosen": [2.0]}
     assert all(abs(a - b) <= 0.15 for k in want for a, b in zip(ends[k], want[k])), ends

@@ -44,8 +44,9 @@ CHORD_RULES = ("route", "road")
 #: spacing (m) of the points at which the "road" chord rule tests the corridor; well under the
 #: kerb radius of any map, so no corner fillet fits between two tests
 CHORD_STEP = 0.5
-#: which lane A3 counts from: the route's, or the one the episode's decisions have chosen so far (decode_action)
-LANE_CHANGE_FROM = ("route", "chosen")
+#: which lane A3 counts from: the route's, the one the EV is in, or the one the episode's decisions
+#: have chosen so far (decode_action)
+LANE_CHANGE_FROM = ("route", "ev", "chosen")
 
 
 @config_class(ENV_YAML, "action")
@@ -344,11 +345,14 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
 
     ``lateral_point(x, y, psi, side)`` gives the matching point on the adjacent lane or None;
     where there is no adjacent lane the waypoint stays (and it does not count as a lane change).
-    A3 counts from the waypoint's own lane (``cfg.lane_change_from`` "route") or, with "chosen",
-    from the lane the episode's decisions have chosen so far, ``tracker.lane`` lanes beside the
-    route (``lanes_across``; 0 at the start, clamped to the lanes beside the waypoint, so inside a
-    junction it returns to the route): "keep" holds that lane, a change moves it one lane further
-    and is remembered, so one decision commits a whole lane change and two reach the lane two over.
+    A3 counts from the waypoint's own lane (``cfg.lane_change_from`` "route"); with "ev", from the
+    lane beside the waypoint whose centre is nearest the EV's offset from its route
+    (``lanes_across``): "keep" holds the lane the EV is in, and a change lasts until the EV is
+    nearer the new lane's centre, after which "keep" holds that one; with "chosen", from the lane
+    the episode's decisions have chosen so far, ``tracker.lane`` lanes beside the route (0 at the
+    start, clamped to the lanes beside the waypoint, so inside a junction it returns to the
+    route): "keep" holds that lane, a change moves it one lane further and is remembered, so one
+    decision commits a whole lane change. With either, two changes reach the lane two over.
     With ``cfg.zero_speed == "hold"`` a zero speed (A2 = 0 m/s) means "stop, facing along the
     route", whatever A1 and A3 say: x_IMR is at 0 m/s with the route's heading, at the EV's own
     position (``ego`` = [x, y, v, psi]; ``cfg.hold_decel`` None) or, with ``cfg.hold_decel`` set,
@@ -379,6 +383,15 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
         return np.array([hx, hy, 0.0, hpsi], dtype=np.float64), False
     side = cfg.lane_change[a3]
     chosen = cfg.lane_change_from == "chosen"
+    from_ev = cfg.lane_change_from == "ev"
+    if from_ev:
+        if ego is None:
+            raise ValueError("action.lane_change_from 'ev' needs the EV pose (ego) to decode a lane change")
+        _, px, py = tracker.station(float(ego[0]), float(ego[1]))
+        rpsi = tracker.heading_here()
+        # the EV's signed offset from its route, left positive: the lane it is in is the one
+        # whose centre lies at the nearest offset from the waypoint
+        ev_off = -(float(ego[0]) - px) * math.sin(rpsi) + (float(ego[1]) - py) * math.cos(rpsi)
     road_rule = cfg.chord_tol is not None and cfg.chord_rule == "road"
     if cfg.chord_tol is not None:
         if ego is None:
@@ -391,9 +404,12 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     for k in range(a1, -1, -1):
         wx, wy, wpsi = (float(c) for c in cands[k])
         changed = False
-        if chosen:
+        if chosen or from_ev:
             lanes = lanes_across(lateral_point, wx, wy, wpsi)
-            here = min(max(tracker.lane, min(lanes)), max(lanes))
+            if chosen:
+                here = min(max(tracker.lane, min(lanes)), max(lanes))
+            else:
+                here = min(lanes, key=lambda n: abs(lanes[n][3] - ev_off))
             there = here + int(side)
             if there != here and there in lanes:
                 changed = True
