@@ -1,11 +1,17 @@
-"""How far the overtaking scenarios send the EV: for each scenario of the overtaking protocol
-(`three_lane_straight`, N_sv = 3, up to two slow SVs, `bimacppo-evaluate --map
-three_lane_straight --tasks straight --n-sv 3 --slow-svs 2`), how many lanes lie between the EV's
-start lane and the nearest lane without a slow SV. A lane change counted from the route's lane
-(`action.lane_change_from: route`) reaches one lane beside the start lane at most, so the
-scenarios at distance 2 need lane changes counted from the EV's (`ev`), the paper's Fig. 8.
+"""How far the overtaking scenarios send the EV, and how a policy does at each distance.
+
+For each scenario of the overtaking protocol (`three_lane_straight`, N_sv = 3, up to two slow
+SVs: `bimacppo-evaluate --map three_lane_straight --tasks straight --n-sv 3 --slow-svs 2`), the
+number of lanes between the EV's start lane and the nearest lane without a slow SV: 0, the EV's
+own lane is free (following the SV ahead is enough); 1 or 2, it must change lanes once or twice
+to pass. A lane change counted from the route's lane (`action.lane_change_from: route`) reaches
+one lane beside the start lane at most, so the scenarios at distance 2 need lane changes counted
+from where the EV drives (`ev` or `chosen`, the paper's Fig. 8). Given a policy, the script also
+runs it on the same scenarios and splits its outcomes by that distance (off road apart from
+collisions with SVs), which says whether it passes slow SVs or only follows free lanes.
 
     python scripts/overtaking_lanes.py --seed-set validation --episodes 100
+    python scripts/overtaking_lanes.py runs/overtake/policy.pt --seed-set validation --action median
 """
 from __future__ import annotations
 
@@ -14,6 +20,7 @@ from collections import Counter
 
 from bimacppo_learning.batch import draw_n_slow
 from bimacppo_learning.evaluate import SEED_SETS, eval_seed
+from bimacppo_planner.policy import ACTION_SELECTIONS
 from bimacppo_sim import Scenario, World, load_map
 
 MAP = "three_lane_straight"
@@ -39,9 +46,50 @@ def distances(seed_set: str, episodes: int, slow_max: int = 2) -> Counter:
     return out
 
 
+OUTCOMES = ("success", "sv collision", "off road", "timeout")
+
+
+def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2, action: str | None = None,
+                         mpc_config=None) -> dict:
+    """{distance: Counter of OUTCOMES} of ``policy`` (a file, as ``bimacppo-evaluate`` takes it) on
+    the protocol's scenarios, with the controller its file records unless ``mpc_config`` says."""
+    from bimacppo_learning.env import IntersectionEnv
+    from bimacppo_learning.evaluate import (as_actor, check_action, default_selection, resolve_mpc_config,
+                                            resolve_policy)
+    from bimacppo_planner.policy import with_selection
+
+    spec, loaded, cfg = resolve_policy(policy)
+    actor = as_actor(with_selection(loaded, action or default_selection(spec, loaded), 0))
+    env = IntersectionEnv(map_id=MAP, config=cfg, mpc_config=resolve_mpc_config(loaded, mpc_config))
+    nvec = tuple(int(n) for n in env.cfg.nvec)
+    out: dict = {}
+    try:
+        for k in range(episodes):
+            seed = eval_seed(TASK, N_SV, k, seed_set)
+            obs, _ = env.reset(options={"n_sv": N_SV, "task": TASK, "scenario_seed": seed,
+                                        "n_slow": draw_n_slow(seed, N_SV, slow_max)})
+            d = free_lane_distance(env.world)
+            done = False
+            while not done:
+                obs, _, term, trunc, info = env.step(check_action(actor(obs), nvec))
+                done = term or trunc
+            cause = info["outcome"]
+            if cause == "collision":
+                cause = "off road" if info["collided_with"] == "offroad" else "sv collision"
+            out.setdefault(d, Counter())[cause] += 1
+    finally:
+        env.close()
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("policy", nargs="?", default=None,
+                   help="a policy file: also run it and split its outcomes by distance")
     p.add_argument("--seed-set", choices=sorted(SEED_SETS), default="validation")
+    p.add_argument("--action", choices=ACTION_SELECTIONS, default=None,
+                   help="how the policy picks each head's action (default: the way its file records)")
+    p.add_argument("--mpc-config", default=None, help="NMPC config (default: the one the policy records)")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--slow-svs", type=int, default=2, help="at most this many slow SVs per scenario (protocol: 2)")
     args = p.parse_args(argv)
@@ -54,6 +102,18 @@ def main(argv=None) -> int:
           f"the nearest one without a slow SV")
     for d in sorted(c):
         print(f"  {d}: {c[d]} scenarios ({100.0 * c[d] / args.episodes:.0f} %)")
+    if args.policy is not None:
+        by = outcomes_by_distance(args.policy, args.seed_set, args.episodes, args.slow_svs, args.action,
+                                  args.mpc_config)
+        print(f"\n{args.policy}, {args.action or 'recorded'} actions: outcomes by distance\n")
+        print("| distance | scenarios | " + " | ".join(OUTCOMES) + " |")
+        print("|---|---|" + "---|" * len(OUTCOMES))
+        for d in sorted(by):
+            print(f"| {d} | {sum(by[d].values())} | " + " | ".join(str(by[d][o]) for o in OUTCOMES) + " |")
+        total = Counter()
+        for cnt in by.values():
+            total.update(cnt)
+        print(f"| all | {sum(total.values())} | " + " | ".join(str(total[o]) for o in OUTCOMES) + " |")
     return 0
 
 

@@ -23,3 +23,29 @@ def test_bad_arguments_end_in_a_usage_error(capsys):
         else:
             raise AssertionError(f"{argv} accepted")
         assert "error:" in capsys.readouterr().err
+
+
+def test_a_policys_outcomes_split_by_distance_add_up_to_its_evaluation(tmp_path, capsys):
+    """The same scenarios as bimacppo-evaluate's overtaking protocol: per-distance outcomes of a
+    constant "keep the lane at 8 m/s" driver sum to what the evaluator counts on the same seeds."""
+    from collections import Counter
+
+    import numpy as np
+    from bimacppo_learning.evaluate import evaluate
+    from bimacppo_planner.decision import EnvConfig
+
+    class KeepLane:
+        def act(self, obs):
+            return np.array([4, 4, 1])
+    script = load_script("overtaking_lanes")
+    n = 12
+    by = script.outcomes_by_distance(KeepLane(), "validation", n)
+    assert {d: sum(c.values()) for d, c in by.items()} == dict(script.distances("validation", n))
+    cell = evaluate(KeepLane(), map_id="three_lane_straight", n_svs=(3,), tasks=(1,), episodes=n, workers=1,
+                    random_row=False, seed_set="validation", slow_svs=2,
+                    env_config=EnvConfig.load())[0]
+    total = sum(by.values(), Counter())
+    assert total["success"] == cell.counts.get("success", 0)
+    assert total["timeout"] == cell.counts.get("timeout", 0)
+    assert total["sv collision"] + total["off road"] == cell.counts.get("collision", 0)
+
