@@ -189,3 +189,25 @@ def test_planner_decodes_lane_changes_from_where_the_ev_drives_as_the_env_does(t
     assert abs(lanes_over - 2.0) < 0.15 and seen[0] and not any(seen[rights:])
     if frm == "chosen":
         assert all(seen[:rights])
+
+
+def test_the_overtaking_policy_runs_on_the_three_lane_road_as_evaluated():
+    """studies/policies' overtaking fine-tune records its decoding (lane changes from the EV's
+    lane) and median actions: the deployed planner built from the file alone sends the env's
+    x_IMR at every decision of a scenario with two slow SVs."""
+    from conftest import REPO
+    from bimacppo_learning.evaluate import eval_seed
+    path = REPO / "studies/policies/bimacppo_three_lane_overtake_ev.pt"
+    hp = HighLevelPlanner.load(path, map_id="three_lane_straight")
+    assert hp.cfg.action.lane_change_from == "ev" and hp.action_selection == "median"
+    env = IntersectionEnv("three_lane_straight", config=hp.cfg)
+    obs, _ = env.reset(options={"n_sv": 3, "task": "straight", "scenario_seed": eval_seed(1, 3, 0, "validation"),
+                                "n_slow": 2})
+    hp.reset(env.world.ego, env.world.goal)
+    for _ in range(40):
+        x_imr, info = hp.step(env.world.ego, env.world.sv_states())
+        np.testing.assert_array_equal(info["obs"], obs)
+        obs, _, term, trunc, einfo = env.step(info["action"])
+        np.testing.assert_array_equal(einfo["x_imr"], x_imr)
+        if term or trunc:
+            break

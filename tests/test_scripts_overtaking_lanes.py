@@ -49,3 +49,12 @@ def test_a_policys_outcomes_split_by_distance_add_up_to_its_evaluation(tmp_path,
     assert total["timeout"] == cell.counts.get("timeout", 0)
     assert total["sv collision"] + total["off road"] == cell.counts.get("collision", 0)
 
+
+
+def test_the_scripted_probe_passes_slow_svs_where_its_lane_is_blocked():
+    """scripts/overtaking_probe.py: on the first 20 validation scenarios it succeeds in some that
+    need one or two lane changes (the decoding lets a driver pass), and its outcomes add up."""
+    probe = load_script("overtaking_probe")
+    by = probe.run("validation", 20)
+    assert sum(sum(c.values()) for c in by.values()) == 20
+    assert sum(c["success"] for d, c in by.items() if d >= 1) >= 3, by

@@ -1,0 +1,115 @@
+"""A scripted, privileged overtaking driver in the planner's own action space: how much of the
+overtaking protocol the road, the SVs and the NMPC allow, whatever a policy learns.
+
+It is a yardstick, not the method, in the way the scripted "yield" driver is for the
+intersections: it reads the SVs' true lanes and speeds, which no policy observes. Each decision
+it keeps the lane the decisions chose (`action.lane_change_from: chosen`, so one A3 ≠ keep
+commits a change), moves one lane towards the nearest lane with no slow SV within 60 m ahead
+when the lane it would move into has no SV within 12 m behind or 15 m ahead, and picks the
+speed that lets it stop behind the nearest SV ahead in its lane or in the lane it moves to, with
+the nearest waypoint below 4 m/s and the farthest above. Outcomes are split by how far the free
+lane lies (scripts/overtaking_lanes.py).
+
+    python scripts/overtaking_probe.py --seed-set validation --episodes 100
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from bimacppo_learning.batch import draw_n_slow
+from bimacppo_learning.env import IntersectionEnv
+from bimacppo_learning.evaluate import SEED_SETS, eval_seed
+from bimacppo_planner.decision import EnvConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from overtaking_lanes import MAP, N_SV, OUTCOMES, TASK, free_lane_distance  # noqa: E402
+
+CONFIG = Path(__file__).resolve().parents[1] / "studies/config/env_wait_chord_junction_road_overtake_chosen.yaml"
+SLOW_SPEED = 5.0        # m/s: an SV ahead slower than this blocks its lane
+BLOCK_AHEAD = 60.0      # m: how far ahead a slow SV blocks
+GAP_BEHIND, GAP_AHEAD = 12.0, 15.0   # m: the lane moved into is clear of SVs within these
+STOP_DECEL = 3.0        # m/s^2: the speed is one that stops behind the SV ahead at this braking
+STANDSTILL = 3.0        # m: the gap kept to the SV ahead at a stop
+
+
+def act(env) -> np.ndarray:
+    """The probe's action for the env's current state (reads the world: privileged)."""
+    w, road = env.world, env.road
+    x, y, v, psi = w.ego_tuple()
+    here = road.lane_index(x, y)[1]
+    chosen = int(w.start_lane.split("_")[-1]) + env.tracker.lane
+    ahead: dict = {lane: [] for lane in range(road.n_lanes)}
+    for sv in w.svs:
+        if sv.active:
+            ahead[road.lane_index(sv.x, sv.y)[1]].append((sv.y - y, sv.v))   # the road runs north
+
+    def blocked(lane):
+        return any(0.0 < d < BLOCK_AHEAD and vs < SLOW_SPEED for d, vs in ahead[lane])
+
+    def clear(lane):
+        return all(not (-GAP_BEHIND < d < GAP_AHEAD) for d, _ in ahead[lane])
+    side = 0
+    free = [lane for lane in ahead if not blocked(lane)]
+    if blocked(chosen) and free:
+        goal = min(free, key=lambda lane: abs(lane - chosen))
+        step = 1 if goal > chosen else -1
+        if clear(chosen + step):
+            side = step
+    target = max(env.cfg.action.speeds)
+    for lane in {here, chosen + side}:
+        for d, vs in ahead[lane]:
+            if d > 0.0:
+                gap = max(d - w.cfg.vehicle.length - STANDSTILL, 0.0)
+                target = min(target, math.sqrt(2.0 * STOP_DECEL * gap + vs * vs))
+    speeds = np.asarray(env.cfg.action.speeds)
+    a2 = int(np.max(np.nonzero(speeds <= target + 1e-9)[0], initial=0))
+    a1 = env.cfg.action.n_waypoints - 1 if speeds[a2] >= 4.0 else 0
+    return np.array([a1, a2, env.cfg.action.lane_change.index(side)])
+
+
+def run(seed_set: str, episodes: int, slow_max: int = 2) -> dict:
+    env = IntersectionEnv(MAP, config=EnvConfig.load(CONFIG))
+    out: dict = {}
+    for k in range(episodes):
+        seed = eval_seed(TASK, N_SV, k, seed_set)
+        env.reset(options={"n_sv": N_SV, "task": TASK, "scenario_seed": seed,
+                           "n_slow": draw_n_slow(seed, N_SV, slow_max)})
+        d = free_lane_distance(env.world)
+        done = False
+        while not done:
+            _, _, term, trunc, info = env.step(act(env))
+            done = term or trunc
+        cause = info["outcome"]
+        if cause == "collision":
+            cause = "off road" if info["collided_with"] == "offroad" else "sv collision"
+        out.setdefault(d, Counter())[cause] += 1
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--seed-set", choices=sorted(SEED_SETS), default="validation")
+    p.add_argument("--episodes", type=int, default=100)
+    args = p.parse_args(argv)
+    if not 1 <= args.episodes <= 1000:
+        p.error(f"--episodes must be in 1..1000, got {args.episodes}")
+    by = run(args.seed_set, args.episodes)
+    print(f"scripted overtaking probe, {args.seed_set} seeds, {args.episodes} scenarios: outcomes by distance\n")
+    print("| distance | scenarios | " + " | ".join(OUTCOMES) + " |")
+    print("|---|---|" + "---|" * len(OUTCOMES))
+    total: Counter = Counter()
+    for d in sorted(by):
+        total.update(by[d])
+        print(f"| {d} | {sum(by[d].values())} | " + " | ".join(str(by[d][o]) for o in OUTCOMES) + " |")
+    print(f"| all | {sum(total.values())} | " + " | ".join(str(total[o]) for o in OUTCOMES) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
