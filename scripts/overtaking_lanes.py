@@ -18,10 +18,16 @@ from __future__ import annotations
 import argparse
 from collections import Counter
 
+import sys
+from pathlib import Path
+
 from bimacppo_learning.batch import draw_n_slow
 from bimacppo_learning.evaluate import SEED_SETS, eval_seed
 from bimacppo_planner.policy import ACTION_SELECTIONS
 from bimacppo_sim import Scenario, World, load_map
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from failure_causes import CAUSES, cause_of  # noqa: E402  (a sibling script: the one split of outcomes)
 
 MAP = "three_lane_straight"
 TASK = 1          # "straight": the only task of the straight road, and the protocol's
@@ -32,7 +38,8 @@ def free_lane_distance(world: World) -> int:
     """Lanes between the EV's start lane and the nearest lane with no slow SV in it."""
     road = world.road
     slow = {road.lane_index(sv.x, sv.y)[1] for sv in world.svs if sv.slow}
-    start = road.lane_index(world._ev[0], world._ev[1])[1]
+    x, y, _, _ = world.ego_tuple()
+    start = road.lane_index(x, y)[1]
     return min(abs(lane - start) for lane in range(road.n_lanes) if lane not in slow)
 
 
@@ -46,13 +53,27 @@ def distances(seed_set: str, episodes: int, slow_max: int = 2) -> Counter:
     return out
 
 
-OUTCOMES = ("success", "sv collision", "off road", "timeout")
+def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2) -> dict:
+    """{distance: Counter of failure_causes.CAUSES} of the driver ``act(env, obs) -> action`` on the
+    protocol's scenarios, run in ``env`` (an IntersectionEnv on the overtaking map)."""
+    out: dict = {}
+    for k in range(episodes):
+        seed = eval_seed(TASK, N_SV, k, seed_set)
+        obs, _ = env.reset(options={"n_sv": N_SV, "task": TASK, "scenario_seed": seed,
+                                    "n_slow": draw_n_slow(seed, N_SV, slow_max)})
+        d = free_lane_distance(env.world)
+        done = False
+        while not done:
+            obs, _, term, trunc, info = env.step(act(env, obs))
+            done = term or trunc
+        out.setdefault(d, Counter())[cause_of(info)] += 1
+    return out
 
 
 def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2, action: str | None = None,
                          mpc_config=None) -> dict:
-    """{distance: Counter of OUTCOMES} of ``policy`` (a file, as ``bimacppo-evaluate`` takes it) on
-    the protocol's scenarios, with the controller its file records unless ``mpc_config`` says."""
+    """``run_by_distance`` for ``policy`` (a file, as ``bimacppo-evaluate`` takes it, or an object
+    with act/predict), with the controller its file records unless ``mpc_config`` says."""
     from bimacppo_learning.env import IntersectionEnv
     from bimacppo_learning.evaluate import (as_actor, check_action, default_selection, resolve_mpc_config,
                                             resolve_policy)
@@ -62,24 +83,20 @@ def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2
     actor = as_actor(with_selection(loaded, action or default_selection(spec, loaded), 0))
     env = IntersectionEnv(map_id=MAP, config=cfg, mpc_config=resolve_mpc_config(loaded, mpc_config))
     nvec = tuple(int(n) for n in env.cfg.nvec)
-    out: dict = {}
     try:
-        for k in range(episodes):
-            seed = eval_seed(TASK, N_SV, k, seed_set)
-            obs, _ = env.reset(options={"n_sv": N_SV, "task": TASK, "scenario_seed": seed,
-                                        "n_slow": draw_n_slow(seed, N_SV, slow_max)})
-            d = free_lane_distance(env.world)
-            done = False
-            while not done:
-                obs, _, term, trunc, info = env.step(check_action(actor(obs), nvec))
-                done = term or trunc
-            cause = info["outcome"]
-            if cause == "collision":
-                cause = "off road" if info["collided_with"] == "offroad" else "sv collision"
-            out.setdefault(d, Counter())[cause] += 1
+        return run_by_distance(env, lambda env, obs: check_action(actor(obs), nvec), seed_set, episodes, slow_max)
     finally:
         env.close()
-    return out
+
+
+def by_distance_markdown(by: dict) -> str:
+    """The outcome table of ``run_by_distance``, one row per distance and a total."""
+    lines = ["| distance | scenarios | " + " | ".join(CAUSES) + " |", "|---|---|" + "---|" * len(CAUSES)]
+    for d in sorted(by):
+        lines.append(f"| {d} | {sum(by[d].values())} | " + " | ".join(str(by[d][o]) for o in CAUSES) + " |")
+    total = sum(by.values(), Counter())
+    lines.append(f"| all | {sum(total.values())} | " + " | ".join(str(total[o]) for o in CAUSES) + " |")
+    return "\n".join(lines)
 
 
 def main(argv=None) -> int:
@@ -106,14 +123,7 @@ def main(argv=None) -> int:
         by = outcomes_by_distance(args.policy, args.seed_set, args.episodes, args.slow_svs, args.action,
                                   args.mpc_config)
         print(f"\n{args.policy}, {args.action or 'recorded'} actions: outcomes by distance\n")
-        print("| distance | scenarios | " + " | ".join(OUTCOMES) + " |")
-        print("|---|---|" + "---|" * len(OUTCOMES))
-        for d in sorted(by):
-            print(f"| {d} | {sum(by[d].values())} | " + " | ".join(str(by[d][o]) for o in OUTCOMES) + " |")
-        total = Counter()
-        for cnt in by.values():
-            total.update(cnt)
-        print(f"| all | {sum(total.values())} | " + " | ".join(str(total[o]) for o in OUTCOMES) + " |")
+        print(by_distance_markdown(by))
     return 0
 
 

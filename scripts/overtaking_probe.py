@@ -17,18 +17,16 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from bimacppo_learning.batch import draw_n_slow
 from bimacppo_learning.env import IntersectionEnv
-from bimacppo_learning.evaluate import SEED_SETS, eval_seed
+from bimacppo_learning.evaluate import SEED_SETS
 from bimacppo_planner.decision import EnvConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from overtaking_lanes import MAP, N_SV, OUTCOMES, TASK, free_lane_distance  # noqa: E402
+from overtaking_lanes import MAP, by_distance_markdown, run_by_distance  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / "studies/config/env_wait_chord_junction_road_overtake_chosen.yaml"
 SLOW_SPEED = 5.0        # m/s: an SV ahead slower than this blocks its lane
@@ -74,22 +72,9 @@ def act(env) -> np.ndarray:
 
 
 def run(seed_set: str, episodes: int, slow_max: int = 2) -> dict:
-    env = IntersectionEnv(MAP, config=EnvConfig.load(CONFIG))
-    out: dict = {}
-    for k in range(episodes):
-        seed = eval_seed(TASK, N_SV, k, seed_set)
-        env.reset(options={"n_sv": N_SV, "task": TASK, "scenario_seed": seed,
-                           "n_slow": draw_n_slow(seed, N_SV, slow_max)})
-        d = free_lane_distance(env.world)
-        done = False
-        while not done:
-            _, _, term, trunc, info = env.step(act(env))
-            done = term or trunc
-        cause = info["outcome"]
-        if cause == "collision":
-            cause = "off road" if info["collided_with"] == "offroad" else "sv collision"
-        out.setdefault(d, Counter())[cause] += 1
-    return out
+    """The probe's outcomes by distance (overtaking_lanes.run_by_distance)."""
+    return run_by_distance(IntersectionEnv(MAP, config=EnvConfig.load(CONFIG)), lambda env, obs: act(env),
+                           seed_set, episodes, slow_max)
 
 
 def main(argv=None) -> int:
@@ -101,13 +86,7 @@ def main(argv=None) -> int:
         p.error(f"--episodes must be in 1..1000, got {args.episodes}")
     by = run(args.seed_set, args.episodes)
     print(f"scripted overtaking probe, {args.seed_set} seeds, {args.episodes} scenarios: outcomes by distance\n")
-    print("| distance | scenarios | " + " | ".join(OUTCOMES) + " |")
-    print("|---|---|" + "---|" * len(OUTCOMES))
-    total: Counter = Counter()
-    for d in sorted(by):
-        total.update(by[d])
-        print(f"| {d} | {sum(by[d].values())} | " + " | ".join(str(by[d][o]) for o in OUTCOMES) + " |")
-    print(f"| all | {sum(total.values())} | " + " | ".join(str(total[o]) for o in OUTCOMES) + " |")
+    print(by_distance_markdown(by))
     return 0
 
 

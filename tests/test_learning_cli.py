@@ -238,15 +238,20 @@ def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
         assert not out.exists()
 
 
+def _fine_tune_args(trained):
+    """(PPO config, the trained run, the argv of a 2-episode fine-tune from its newest checkpoint)."""
+    _, cfg, run = trained
+    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
+    return cfg, run, ["--episodes", "2", "--ppo-config", str(cfg), "--no-progress", "--init-policy", str(ckpt)]
+
+
 def test_a_fine_tune_may_change_the_reward_when_told_but_a_resume_may_not(trained, tmp_path, env_yaml, capsys):
     """The reward is the task a run trains for: a fine-tune given --fine-tune-reward trains with
     its own and records it; without the flag, and on a resume (one run continued), another
     reward is refused; another observation is refused even with the flag."""
-    _, cfg, run = trained
-    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
+    cfg, run, base = _fine_tune_args(trained)
     terminal = env_yaml("reward:\n  timeout_mode: truncate\n  step: -0.1\n")
     out = tmp_path / "tuned"
-    base = ["--episodes", "2", "--ppo-config", str(cfg), "--no-progress", "--init-policy", str(ckpt)]
     assert train_main([*base, "--run-dir", str(out), "--env-config", str(terminal)]) == 2
     line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
     assert "reward.step: -0.02 != -0.1" in line and "--fine-tune-reward" in line and not out.exists()
@@ -271,12 +276,10 @@ def test_a_fine_tune_may_change_how_actions_decode_only_when_told(trained, tmp_p
     """How A3 decodes is part of the task: another action section is refused for --init-policy
     unless --fine-tune-action says so (the error names the field and the flag); with it the run
     records the new decoding; the heads' sizes are compared all the same; --resume keeps its run's."""
-    _, cfg, run = trained
-    ckpt = sorted((run / "checkpoints").glob("*.pt"))[-1]
-    ev = env_yaml("action:\n  lane_change_from: chosen\n")
+    cfg, run, base = _fine_tune_args(trained)
+    chosen = env_yaml("action:\n  lane_change_from: chosen\n")
     out = tmp_path / "chosen"
-    base = ["--episodes", "2", "--ppo-config", str(cfg), "--no-progress", "--init-policy", str(ckpt)]
-    assert train_main([*base, "--run-dir", str(out), "--env-config", str(ev)]) == 2
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(chosen)]) == 2
     line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
     assert "action.lane_change_from: route != chosen" in line and "--fine-tune-action" in line and not out.exists()
     fewer = env_yaml("action:\n  lane_change_from: chosen\n  speeds: [0.0, 4.0, 8.0]\n")
@@ -284,8 +287,13 @@ def test_a_fine_tune_may_change_how_actions_decode_only_when_told(trained, tmp_p
     assert "nvec" in _one_error_line(capsys.readouterr().err, "bimacppo-train") and not out.exists()
     assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "x"), "--fine-tune-action"]) == 2
     assert "needs --init-policy" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
-    assert train_main([*base, "--run-dir", str(out), "--env-config", str(ev), "--fine-tune-action"]) == 0
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(chosen), "--fine-tune-action"]) == 0
     assert json.loads((out / "run.json").read_text())["env_config"]["action"]["lane_change_from"] == "chosen"
+    before = _snapshot(run)
+    assert train_main(["--episodes", "8", "--run-dir", str(run), "--ppo-config", str(cfg), "--no-progress",
+                       "--resume", "--env-config", str(chosen)]) == 2
+    assert "action.lane_change_from: route != chosen" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert _snapshot(run) == before
 
 
 def test_report_refuses_a_bad_window_on_one_line(trained, tmp_path, capsys):
