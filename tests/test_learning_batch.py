@@ -321,3 +321,48 @@ def test_headway_shaping_prices_the_ticks_closing_on_the_lead_too_fast_to_stop(m
         kinds["not"] += len(log1) - priced
         assert r1 - r2 == pytest.approx(price / every * priced, abs=1e-9)
     assert kinds["priced"] > 0 and kinds["not"] > 0, kinds
+
+
+def test_free_lane_term_pays_the_change_in_lanes_to_the_free_lane(monkeypatch):
+    """The same overtaking scenarios and actions (a right change held, then "keep") with and
+    without the lane-progress term: the trajectories are the same, and the return differs by
+    free_lane times the sum over decisions of the change in ``lanes_to_free_lane`` (None at
+    either end pays nothing); among the scenarios some decisions move towards the free lane."""
+    import bimacppo_learning.batch as batch_mod
+
+    base = EXT.to_dict()
+    price = -2.0
+    overtake = {"sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0]}
+    shaped = EnvConfig.from_dict({**base, "observation": {**base["observation"], **overtake},
+                                  "action": {**base["action"], "lane_change_from": "ev"},
+                                  "reward": {**base["reward"], "go_speed": 4.0, "free_lane": price}})
+    plain = EnvConfig.from_dict({**base, "observation": {**base["observation"], **overtake},
+                                 "action": {**base["action"], "lane_change_from": "ev"},
+                                 "reward": {**base["reward"], "go_speed": 4.0}})
+    real = batch_mod.lanes_to_free_lane
+    moved = 0
+    for k in range(6):
+        runs = []
+        for cfg in (shaped, plain):
+            log = []
+
+            def count(world, slow, reach):
+                out = real(world, slow, reach)
+                log.append(out)
+                return out
+            monkeypatch.setattr(batch_mod, "lanes_to_free_lane", count)
+            b = IntersectionBatch(1, map_id="three_lane_straight", config=cfg, slow_svs=2)
+            b.reset(0, seed=k, options={"n_sv": 3, "task": "straight", "n_slow": 2})
+            for t in range(40):
+                _, _, te, tr, _ = b.step(np.array([[4, 3, 2 if t < 15 else 1]]))
+                if te[0] or tr[0]:
+                    break
+            runs.append((b.returns[0], b.worlds[0].ego_tuple(), list(log)))
+        monkeypatch.setattr(batch_mod, "lanes_to_free_lane", real)
+        (r1, ego1, log1), (r2, ego2, log2) = runs
+        assert ego1 == ego2 and log2 == []
+        pairs = list(zip(log1[0::2], log1[1::2]))            # (before, after) per decision
+        want = sum(price * (a - b0) for b0, a in pairs if a is not None and b0 is not None)
+        moved += sum(1 for b0, a in pairs if a is not None and b0 is not None and a < b0)
+        assert r1 - r2 == pytest.approx(want, abs=1e-9)
+    assert moved > 0

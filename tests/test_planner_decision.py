@@ -211,6 +211,22 @@ def test_variant_files_overlay_the_packaged_env_yaml(variant):
     assert EnvConfig.load(path).to_dict() == expect
 
 
+def test_every_study_env_file_is_an_overlay_of_the_packaged_env_yaml():
+    """Every studies/config/env_*.yaml says it overlays env.yaml and loads to the packaged
+    defaults with exactly its own keys changed (the files not listed above included)."""
+    import yaml
+    from conftest import REPO
+    files = sorted((REPO / "studies/config").glob("env_*.yaml"))
+    assert len(files) > len(VARIANTS) // 2
+    for path in files:
+        assert path.read_text().startswith("# Overlays bimacppo_planner/config/env.yaml"), path.name
+        expect = EnvConfig.load().to_dict()
+        for sec, keys in yaml.safe_load(path.read_text()).items():
+            expect[sec].update({k: list(v) if isinstance(v, list) else v for k, v in keys.items()})
+        got = EnvConfig.load(path).to_dict()
+        assert got == expect, path.name
+
+
 def test_saved_env_config_round_trips_and_older_dicts_take_packaged_defaults():
     import dataclasses
     cfg = EnvConfig.load(overrides={"observation": {"max_sv": 2}, "action.decision_every": 2})
@@ -793,3 +809,55 @@ def test_two_right_changes_reach_the_far_lane_only_from_the_evs_or_the_chosen_la
             ends[frm] = [round((env.world._ev[0] - x0) / env.road.lane_width, 2)]
     want = {"route": [1.0, 0.0], "ev": [2.0, 2.0], "chosen": [2.0]}
     assert all(abs(a - b) <= 0.15 for k in want for a, b in zip(ends[k], want[k])), ends
+
+
+def test_reach_time_limits_a1_to_the_distance_a2s_speed_covers():
+    """Straight route, EV at y = 0.5 so WP0..WP4 lie 2.5 .. 14.5 m ahead. Off (the default): A1
+    picks its waypoint whatever A2. With reach_time 1.5 s: the farthest of WP0..WP_A1 no farther
+    ahead than 1.5 s at A2's speed, WP0 always; a waypoint three times its lateral offset ahead
+    stays allowed, so a lane change is not asked for over a few metres."""
+    base = dataclasses_replace(EnvConfig.load().action, speeds=(0.0, 2.0, 4.0, 6.0, 8.0))
+    reach = dataclasses_replace(base, reach_time=1.5)
+    ego = np.array([0.0, 0.5, 5.0, math.pi / 2])
+
+    def decode(acfg, a1, a2, a3=1, lateral=lambda *a: None):
+        tr = WaypointTracker.for_action(_straight_route(), acfg)
+        tr.update(0.0, 0.5)
+        return decode_action([a1, a2, a3], tr, acfg, lateral, ego)[0]
+
+    for a2, want_y in ((0, 3.0), (1, 3.0), (2, 6.0), (3, 9.0), (4, 12.0)):   # reach 0, 3, 6, 9, 12 m
+        assert decode(base, 4, a2)[1] == pytest.approx(15.0)
+        got = decode(reach, 4, a2)
+        assert got[1] == pytest.approx(want_y) and got[2] == base.speeds[a2], a2
+    assert decode(reach, 1, 4)[1] == pytest.approx(6.0)        # a bound, never a push further out
+    assert WaypointTracker(_straight_route(), 5).reach_limited(4, 0.0, 0.5, 0.0) == 0
+
+    def left(x, y, psi, side):
+        return (x - 3.5, y, psi) if side == -1 else None
+
+    got = decode(reach, 4, 2, a3=0, lateral=left)                   # 4 m/s: 6 m, but 3 x 3.5 m sideways
+    assert got[0] == pytest.approx(-3.5) and got[1] == pytest.approx(9.0)
+    with pytest.raises(ValueError, match="ego"):
+        decode_action([4, 2, 1], WaypointTracker.for_action(_straight_route(), reach), reach, lambda *a: None)
+    with pytest.raises(ConfigError, match="reach_time"):
+        EnvConfig.load(overrides={"action.reach_time": 0.0})
+    assert EnvConfig.load().action.reach_time is None
+
+
+def test_reach_time_lets_a2_set_the_speed_on_the_empty_road():
+    """Closed loop through the env and the NMPC, empty three-lane road, A1 = WP4 held for 7.5 s.
+    Without the bound the far waypoint pulls the EV to about 10 m/s whatever A2 asks for; with
+    reach_time 1.5 s the EV drives near A2's speed."""
+    from bimacppo_learning.env import IntersectionEnv
+    end = {}
+    for rt in (None, 1.5):
+        env = IntersectionEnv("three_lane_straight", config=EnvConfig.load(
+            REPO_ENV_JUNCTION, overrides={"action.reach_time": rt}))
+        for a2 in (1, 2, 3):
+            env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": 3})
+            for _ in range(25):
+                _, _, term, trunc, _ = env.step(np.array([4, a2, 1]))
+                assert not (term or trunc)
+            end[rt, env.cfg.action.speeds[a2]] = env.world._ev[2]
+    assert all(end[None, v] > 9.0 for v in (2.0, 4.0, 6.0)), end
+    assert all(abs(end[1.5, v] - v) < 1.5 for v in (2.0, 4.0, 6.0)), end

@@ -4,7 +4,7 @@ from bimacppo_sim import Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
 import math
 
-from bimacppo_sim.drivers import (closing_on_lead, junction_distance, junction_threatened, make_driver,
+from bimacppo_sim.drivers import (closing_on_lead, junction_distance, junction_threatened, lanes_to_free_lane, make_driver,
                                   stop_line_distance)
 
 
@@ -54,6 +54,33 @@ def test_time_to_box_is_zero_inside_infinite_when_leaving_and_gap_over_speed_oth
     assert road.time_to_box(0.0, -H - 1.0, 0.0, math.pi / 2) == 1.0 / road.BOX_SPEED_FLOOR
     straight = load_map("three_lane_straight")
     assert straight.box_gap(0.0, 0.0) == math.inf and straight.time_to_box(0.0, 0.0, 5.0, 0.0) == math.inf
+
+
+def test_lanes_to_free_lane_counts_to_the_nearest_lane_no_slow_sv_blocks_ahead():
+    """Three-lane road, EV in lane 0: the count is 0 while its lane is free, and otherwise the lanes
+    to the nearest one with no SV slower than slow_speed ahead within reach; an SV behind, too
+    far ahead or fast blocks nothing; every lane blocked, or the EV inside a junction, gives None."""
+    road = load_map("three_lane_straight")
+    w = World(road)
+    w.reset(Scenario(n_sv=3, task="straight", seed=3))
+    w._ev[:] = [*road.lane_point("road_0", 20.0)[:2], 6.0, road.lane_point("road_0", 20.0)[2]]
+
+    def count(*svs):     # (lane, metres ahead of the EV, speed) per SV; the rest inactive
+        for sv in w.svs:
+            sv.active = False
+        for sv, (lane, ahead, v) in zip(w.svs, svs):
+            sv.x, sv.y, sv.psi = road.lane_point(f"road_{lane}", 20.0 + ahead)
+            sv.v, sv.active = v, True
+        return lanes_to_free_lane(w, 4.0, 60.0)
+
+    assert count() == 0 and count((1, 10.0, 1.0)) == 0
+    assert count((0, 10.0, 1.0)) == 1 and count((0, 10.0, 1.0), (1, 30.0, 2.0)) == 2
+    assert count((0, 10.0, 7.0)) == 0 and count((0, -10.0, 1.0)) == 0 and count((0, 70.0, 1.0)) == 0
+    assert count((0, 10.0, 1.0), (1, 30.0, 2.0), (2, 50.0, 0.5)) is None
+    junction = World(load_map("dual_lane_4way"))
+    junction.reset(Scenario(n_sv=0, task="straight", seed=1))
+    junction._ev[:2] = [0.0, 0.0]
+    assert lanes_to_free_lane(junction, 4.0, 60.0) is None
 
 
 def test_closing_on_lead_tests_the_stop_behind_the_sv_ahead_in_the_lane():

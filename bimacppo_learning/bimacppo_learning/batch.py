@@ -33,7 +33,7 @@ from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, idle_share, observe, step_reward
 from bimacppo_sim import Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
-from bimacppo_sim.drivers import closing_on_lead, junction_distance, junction_threatened
+from bimacppo_sim.drivers import closing_on_lead, junction_distance, junction_threatened, lanes_to_free_lane
 
 RESET_OPTIONS = ("n_sv", "task", "scenario_seed", "n_slow")
 SEED_HIGH = 2 ** 31 - 1
@@ -200,6 +200,9 @@ class IntersectionBatch:
         rcfg = self.cfg.reward
         shaping = np.zeros(self.B)
         tcfg = self._threat_cfg
+        if rcfg.free_lane != 0.0:
+            ocfg = self.cfg.observation
+            lanes_before = [lanes_to_free_lane(w, rcfg.go_speed, ocfg.sv_clip) for w in self.worlds]
         for k in range(acfg.decision_every):
             for i in range(self.B):
                 X0[i] = self.worlds[i].ego_tuple()
@@ -236,6 +239,11 @@ class IntersectionBatch:
                     alive[i] = False
             if not alive.any():
                 break
+        if rcfg.free_lane != 0.0:
+            for i in range(self.B):
+                after = lanes_to_free_lane(self.worlds[i], rcfg.go_speed, ocfg.sv_clip)
+                if lanes_before[i] is not None and after is not None:
+                    shaping[i] += rcfg.free_lane * (after - lanes_before[i])
         obs = np.empty((self.B, self.obs_dim), np.float32)
         rew = np.empty(self.B)
         term = np.zeros(self.B, bool)

@@ -47,6 +47,10 @@ CHORD_STEP = 0.5
 #: which lane A3 counts from: the route's, the one the EV is in, or the one the episode's decisions
 #: have chosen so far (decode_action)
 LANE_CHANGE_FROM = ("route", "ev", "chosen")
+#: with action.reach_time, a waypoint this many times its lateral offset from the EV ahead stays
+#: allowed whatever the speed: the approach to it is then at most atan(1/3) = 18 deg off the
+#: road's heading, a lane change the NMPC completes without leaving the road (decode_action)
+REACH_PER_LATERAL = 3.0
 
 
 @config_class(ENV_YAML, "action")
@@ -61,6 +65,7 @@ class ActionConfig:
     chord_rule: str = setting(choices=CHORD_RULES, absent="route")   # what the chord limit tests, see env.yaml
     min_lookahead: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
     lane_change_from: str = setting(choices=LANE_CHANGE_FROM, absent="route")   # the lane A3 counts from, see env.yaml
+    reach_time: float | None = setting(lo=0.0, lo_open=True, absent=None)   # s; None: off (the paper), see env.yaml
 
     def _check(self) -> None:
         if self.lane_change != (-1, 0, 1):
@@ -82,6 +87,7 @@ class RewardConfig:
     idle_clear: float = setting(hi=0.0)
     threat_speed: float = setting(hi=0.0)
     headway: float = setting(hi=0.0, absent=0.0)
+    free_lane: float = setting(hi=0.0, absent=0.0)
     idle_speed: float = setting(lo=0.0)
     go_speed: float = setting(lo=0.0)
     lane_change: float
@@ -276,6 +282,16 @@ class WaypointTracker:
             i += 1
         return x + qx - px, y + qy - py, psi
 
+    def reach_limited(self, k: int, x: float, y: float, reach: float) -> int:
+        """The farthest of WP0..WPk that lies at most ``reach`` metres ahead of (x, y), measured
+        along the route's heading at the waypoint. WP0 is always allowed: it is the nearest
+        waypoint the decoding may aim at."""
+        m = len(self.route) - 1
+        for kk in range(k, 0, -1):
+            if self._ahead(min(self.start + kk, m), x, y) <= reach:
+                return kk
+        return 0
+
     def chord_limited(self, k: int, x: float, y: float, tol: float) -> int:
         """The farthest of WP0..WPk whose chord from (x, y) passes every route point before it
         within ``tol`` (m). The route is a polyline through its points, so checking its vertices
@@ -369,6 +385,11 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     EV along a straight corridor of half-width chord_tol on the paved road (``corridor_on_road``
     with ``drivable(x, y)``, the map's test); WP0 always passes. Where WP0 is
     (``cfg.min_lookahead``) is the tracker's, built by ``WaypointTracker.for_action(route, cfg)``.
+    With ``cfg.reach_time`` set, A1 is first limited to the farthest of WP0..WP_A1 no farther
+    ahead of the EV than the distance A2's speed covers in that time
+    (`WaypointTracker.reach_limited`): the NMPC weighs the reference's position against its speed,
+    so a far waypoint pulls the EV well above the speed A2 asks for, and with the reach bounded A2
+    sets the speed.
     """
     a1, a2, a3 = int(action[0]), int(action[1]), int(action[2])
     if not (0 <= a1 < cfg.n_waypoints and 0 <= a2 < len(cfg.speeds) and 0 <= a3 < len(cfg.lane_change)):
@@ -381,6 +402,11 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
         v = max(float(ego[2]), 0.0)
         hx, hy, hpsi = tracker.ahead(float(ego[0]), float(ego[1]), v * v / (2.0 * cfg.hold_decel))
         return np.array([hx, hy, 0.0, hpsi], dtype=np.float64), False
+    reach = None
+    if cfg.reach_time is not None:
+        if ego is None:
+            raise ValueError("action.reach_time needs the EV pose (ego) to decode a waypoint")
+        reach = float(cfg.speeds[a2]) * float(cfg.reach_time)
     side = cfg.lane_change[a3]
     chosen = cfg.lane_change_from == "chosen"
     from_ev = cfg.lane_change_from == "ev"
@@ -421,6 +447,12 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
             if p is not None:
                 wx, wy, wpsi = float(p[0]), float(p[1]), float(p[2])
                 changed = True
+        if k > 0 and reach is not None:
+            c0 = cands[k]
+            ahead = (c0[0] - ego[0]) * math.cos(c0[2]) + (c0[1] - ego[1]) * math.sin(c0[2])
+            lateral = abs(-(wx - ego[0]) * math.sin(c0[2]) + (wy - ego[1]) * math.cos(c0[2]))
+            if ahead > max(reach, REACH_PER_LATERAL * lateral):
+                continue
         if not road_rule or k == 0 or corridor_on_road(float(ego[0]), float(ego[1]), wx, wy,
                                                        float(cfg.chord_tol), drivable):
             break
