@@ -6,11 +6,16 @@ intersections: it reads the SVs' true lanes and speeds, which no policy observes
 it keeps the lane the decisions chose (`action.lane_change_from: chosen`, so one A3 ≠ keep
 commits a change), moves one lane towards the nearest lane with no slow SV within 60 m ahead
 when the lane it would move into has no SV within 12 m behind or 15 m ahead, and picks the
-speed that lets it stop behind the nearest SV ahead in its lane or in the lane it moves to, with
-the nearest waypoint below 4 m/s and the farthest above. Outcomes are split by how far the free
-lane lies (scripts/overtaking_lanes.py).
+speed that lets it stop behind the nearest SV ahead in its lane or in the lane it moves to.
+With nothing to follow it aims at the farthest waypoint; behind an SV at the farthest waypoint
+no more than A2's speed covers in 1 s plus 1.5 m ahead, because the NMPC weighs the reference's
+position against its speed and a far waypoint pulls the EV to about 10 m/s whatever A2 says.
+``--reach-time T`` instead leaves A1 at the farthest waypoint and lets the decoding bound it
+(`action.reach_time`, variant 18). Outcomes are split by how far the free lane lies
+(scripts/overtaking_lanes.py).
 
     python scripts/overtaking_probe.py --seed-set validation --episodes 100
+    python scripts/overtaking_probe.py --seed-set validation --reach-time 1.5
 """
 from __future__ import annotations
 
@@ -34,6 +39,7 @@ BLOCK_AHEAD = 60.0      # m: how far ahead a slow SV blocks
 GAP_BEHIND, GAP_AHEAD = 12.0, 15.0   # m: the lane moved into is clear of SVs within these
 STOP_DECEL = 3.0        # m/s^2: the speed is one that stops behind the SV ahead at this braking
 STANDSTILL = 3.0        # m: the gap kept to the SV ahead at a stop
+FOLLOW_TIME, FOLLOW_SLACK = 1.0, 1.5   # s, m: behind an SV, aim at most this far ahead (speed * time + slack)
 
 
 def act(env) -> np.ndarray:
@@ -67,25 +73,35 @@ def act(env) -> np.ndarray:
                 target = min(target, math.sqrt(2.0 * STOP_DECEL * gap + vs * vs))
     speeds = np.asarray(env.cfg.action.speeds)
     a2 = int(np.max(np.nonzero(speeds <= target + 1e-9)[0], initial=0))
-    a1 = env.cfg.action.n_waypoints - 1 if speeds[a2] >= 4.0 else 0
+    a1 = env.cfg.action.n_waypoints - 1
+    if target < speeds.max() and env.cfg.action.reach_time is None:
+        # following: a waypoint the speed covers in about a second, since a farther one pulls the
+        # EV above A2's speed (the NMPC weighs the reference's position against its speed)
+        a1 = env.tracker.reach_limited(a1, x, y, speeds[a2] * FOLLOW_TIME + FOLLOW_SLACK)
     return np.array([a1, a2, env.cfg.action.lane_change.index(side)])
 
 
-def run(seed_set: str, episodes: int, slow_max: int = 2) -> dict:
-    """The probe's outcomes by distance (overtaking_lanes.run_by_distance)."""
-    return run_by_distance(IntersectionEnv(MAP, config=EnvConfig.load(CONFIG)), lambda env, obs: act(env),
-                           seed_set, episodes, slow_max)
+def run(seed_set: str, episodes: int, slow_max: int = 2, reach_time: float | None = None) -> dict:
+    """The probe's outcomes by distance (overtaking_lanes.run_by_distance), with A1's reach
+    bounded by ``reach_time`` (``action.reach_time``; None: unbounded, the paper's decoding)."""
+    cfg = EnvConfig.load(CONFIG, overrides={"action.reach_time": reach_time})
+    return run_by_distance(IntersectionEnv(MAP, config=cfg), lambda env, obs: act(env), seed_set, episodes, slow_max)
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seed-set", choices=sorted(SEED_SETS), default="validation")
     p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--reach-time", type=float, default=None,
+                   help="decode with action.reach_time = this (s) and aim at the farthest waypoint (default: off)")
     args = p.parse_args(argv)
     if not 1 <= args.episodes <= 1000:
         p.error(f"--episodes must be in 1..1000, got {args.episodes}")
-    by = run(args.seed_set, args.episodes)
-    print(f"scripted overtaking probe, {args.seed_set} seeds, {args.episodes} scenarios: outcomes by distance\n")
+    if args.reach_time is not None and not (math.isfinite(args.reach_time) and args.reach_time > 0.0):
+        p.error(f"--reach-time must be a positive number of seconds, got {args.reach_time}")
+    by = run(args.seed_set, args.episodes, reach_time=args.reach_time)
+    how = "A1 by its speed" if args.reach_time is None else f"action.reach_time {args.reach_time:g} s"
+    print(f"scripted overtaking probe ({how}), {args.seed_set} seeds, {args.episodes} scenarios: outcomes by distance\n")
     print(by_distance_markdown(by))
     return 0
 
