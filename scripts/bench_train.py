@@ -7,7 +7,13 @@ the table prints episodes/s, world ticks/s, decisions/s, the time split (env ste
 forward, PPO update, bookkeeping), peak memory, and each row's ratio to the first row. Prints
 figures; asserts nothing. Numbers on a shared machine are noisy: repeat with --repeat.
 
+``--concurrent N`` starts N copies of each configuration at once, as a sweep does on one machine:
+the row shows one copy's figures (the median copy) and the aggregate episodes/s of all N.
+``--omp-wait active`` runs the children with OMP_WAIT_POLICY=ACTIVE (OpenMP threads spin after
+each parallel NMPC call) instead of the package's default, passive (bimacppo_mpc/__init__.py).
+
     .venv/bin/python scripts/bench_train.py --episodes 500
+    .venv/bin/python scripts/bench_train.py --episodes 600 --only batched --concurrent 2 --omp-wait active
     .venv/bin/python scripts/bench_train.py --episodes 5000 --only batched     # a full paper-budget run
 """
 from __future__ import annotations
@@ -66,16 +72,27 @@ print("RESULT " + json.dumps({"wall": wall, "episodes": res.episodes, "decisions
 """
 
 
-def run_one(name: str, episodes: int, seed: int, env_config: str) -> dict:
+def run_many(name: str, episodes: int, seed: int, env_config: str, copies: int = 1,
+             omp_wait: str | None = None) -> list[dict]:
+    """``copies`` children of configuration ``name`` started together; one result each."""
+    env = {**os.environ, "TQDM_DISABLE": "1"}
+    if omp_wait is not None:
+        env["OMP_WAIT_POLICY"] = omp_wait.upper()
     with tempfile.TemporaryDirectory(prefix=f"bench-{name}-") as tmp:
-        arg = json.dumps({"train": CONFIGS[name], "mpc": MPC.get(name, {}), "episodes": episodes, "seed": seed,
-                          "env_config": env_config, "run_dir": tmp})
-        out = subprocess.run([sys.executable, "-c", CHILD, arg], capture_output=True, text=True,
-                             env={**os.environ, "TQDM_DISABLE": "1"})
-    line = next((l for l in out.stdout.splitlines() if l.startswith("RESULT ")), None)
-    if out.returncode != 0 or line is None:
-        raise SystemExit(f"bench_train: {name} failed (exit {out.returncode}): {out.stderr.strip()[-1500:]}")
-    return json.loads(line[len("RESULT "):])
+        procs = []
+        for c in range(copies):
+            arg = json.dumps({"train": CONFIGS[name], "mpc": MPC.get(name, {}), "episodes": episodes, "seed": seed,
+                              "env_config": env_config, "run_dir": os.path.join(tmp, str(c))})
+            procs.append(subprocess.Popen([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE,
+                                          stderr=subprocess.PIPE, text=True, env=env))
+        outs = [(p, *p.communicate()) for p in procs]
+    results = []
+    for p, stdout, stderr in outs:
+        line = next((l for l in stdout.splitlines() if l.startswith("RESULT ")), None)
+        if p.returncode != 0 or line is None:
+            raise SystemExit(f"bench_train: {name} failed (exit {p.returncode}): {stderr.strip()[-1500:]}")
+        results.append(json.loads(line[len("RESULT "):]))
+    return results
 
 
 def main() -> int:
@@ -85,24 +102,34 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=1, help="runs per configuration (the table shows the median)")
     ap.add_argument("--only", choices=sorted(CONFIGS), action="append", help="run only these configurations")
     ap.add_argument("--env-config", default=str(EXT))
+    ap.add_argument("--concurrent", type=int, default=1, help="copies of each configuration run at once (a sweep on one machine)")
+    ap.add_argument("--omp-wait", choices=("active", "passive"), default=None,
+                    help="OMP_WAIT_POLICY of the children (default: the package's, passive)")
     args = ap.parse_args()
+    if not 1 <= args.concurrent <= 64:
+        ap.error(f"--concurrent must be in 1..64, got {args.concurrent}")
     names = args.only or list(CONFIGS)
     rows = []
     for name in names:
         runs = []
         for k in range(args.repeat):
             print(f"{name}: run {k + 1}/{args.repeat}, {args.episodes} episodes ...", file=sys.stderr, flush=True)
-            runs.append(run_one(name, args.episodes, args.seed, args.env_config))
+            copies = run_many(name, args.episodes, args.seed, args.env_config, args.concurrent, args.omp_wait)
+            one = sorted(copies, key=lambda r: r["wall"])[len(copies) // 2]
+            one["aggregate"] = sum(r["episodes"] / r["wall"] for r in copies)
+            runs.append(one)
         mid = sorted(runs, key=lambda r: r["wall"])[len(runs) // 2]
         mid["eps_all"] = [r["episodes"] / r["wall"] for r in runs]
         rows.append((name, mid))
     base = rows[0][1]
     print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
-          f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}\n")
-    print("| path | train config (and NMPC overrides) | episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC s (solve_batch time, summed over processes) | "
+          f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}; "
+          f"{args.concurrent} cop{'y' if args.concurrent == 1 else 'ies'} at once, OMP_WAIT_POLICY "
+          f"{(args.omp_wait or os.environ.get('OMP_WAIT_POLICY') or 'passive (package default)')}\n")
+    print("| path | train config (and NMPC overrides) | episodes/s | all copies: episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC s (solve_batch time, summed over processes) | "
           "NMPC per problem: µs of solve_batch wall time / SQP iterations / second starts | "
           "policy s | update s | other s | peak RSS main / largest worker (MiB) | success, last 200 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, r in rows:
         tm = r["timing"]
         other = tm["total"] - tm["env"] - tm["policy"] - tm["update"]
@@ -113,7 +140,7 @@ def main() -> int:
         per = (f"{1e6 * tm['mpc_cpu'] / n:.0f} / {tm['mpc_iterations'] / n:.2f} / {100 * tm['mpc_second_starts'] / n:.1f} %"
                if n else "-")
         conf = json.dumps(CONFIGS[name]) + (f" NMPC {json.dumps(MPC[name])}" if name in MPC else "")
-        print(f"| {name} | {conf} | {eps:.1f}{spread} | {r['ticks'] / r['wall']:.0f} | "
+        print(f"| {name} | {conf} | {eps:.1f}{spread} | {r['aggregate']:.1f} | {r['ticks'] / r['wall']:.0f} | "
               f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x | {tm['env']:.1f} | "
               f"{mpc} | {per} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | "
               f"{r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | {100 * r['success']:.0f}% |")

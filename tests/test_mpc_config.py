@@ -127,3 +127,25 @@ def test_horizon_has_an_upper_bound():
     assert cfg.replace(horizon=MAX_HORIZON).horizon == MAX_HORIZON
     with pytest.raises(ValueError, match=r"key 'horizon' must be in \[1, 200\]"):
         cfg.replace(horizon=10_000_000)
+
+
+def test_importing_the_mpc_makes_idle_openmp_threads_passive_unless_the_user_chose():
+    """bimacppo_mpc sets OMP_WAIT_POLICY=PASSIVE before numba's OpenMP runtime loads (spinning
+    threads make concurrent training runs on shared cores several times slower), and keeps a value
+    the user set; the parallel batch solve still runs and agrees with the serial one."""
+    import os
+    import subprocess
+    import sys
+    script = ("import os, numpy as np\n"
+              "from bimacppo_mpc import MPCConfig, make_controller\n"
+              "c = make_controller(MPCConfig.load(), 'fast')\n"
+              "x = np.tile([0.0, 0.0, 5.0, 0.0], (8, 1)); r = np.tile([12.0, 1.0, 6.0, 0.1], (8, 1))\n"
+              "u = np.zeros((8, 2)); a = c.solve_batch(x, r, u).u\n"
+              "c.reset(); c.set_threads(1); b = c.solve_batch(x, r, u).u\n"
+              "assert np.allclose(a, b), (a, b)\n"
+              "print(os.environ['OMP_WAIT_POLICY'])\n")
+    base = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    for env, want in ((base, "PASSIVE"), ({**base, "OMP_WAIT_POLICY": "ACTIVE"}, "ACTIVE")):
+        out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.split()[-1] == want

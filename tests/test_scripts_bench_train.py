@@ -1,0 +1,20 @@
+"""scripts/bench_train.py: copies run at once, and their aggregate throughput is reported."""
+import subprocess
+import sys
+
+from conftest import REPO
+
+
+def test_concurrent_copies_report_one_copy_and_the_aggregate():
+    out = subprocess.run([sys.executable, str(REPO / "scripts/bench_train.py"), "--episodes", "20", "--only", "batched",
+                          "--concurrent", "2", "--omp-wait", "passive"], capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "2 copies at once, OMP_WAIT_POLICY passive" in out.stdout
+    row = next(line for line in out.stdout.splitlines() if line.startswith("| batched |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    one, together = float(cells[2]), float(cells[3])
+    # the row's copy is the median (of two: the slower), the aggregate the sum over both
+    assert one > 0.0 and together >= 1.99 * one
+    bad = subprocess.run([sys.executable, str(REPO / "scripts/bench_train.py"), "--concurrent", "0"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--concurrent must be in 1..64" in bad.stderr
