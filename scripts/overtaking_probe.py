@@ -29,6 +29,7 @@ import numpy as np
 from bimacppo_learning.env import IntersectionEnv
 from bimacppo_learning.evaluate import SEED_SETS
 from bimacppo_planner.decision import EnvConfig
+from bimacppo_sim.drivers import blocked_lanes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from overtaking_lanes import MAP, by_distance_markdown, run_by_distance  # noqa: E402
@@ -53,14 +54,13 @@ def act(env) -> np.ndarray:
         if sv.active:
             ahead[road.lane_index(sv.x, sv.y)[1]].append((sv.y - y, sv.v))   # the road runs north
 
-    def blocked(lane):
-        return any(0.0 < d < BLOCK_AHEAD and vs < SLOW_SPEED for d, vs in ahead[lane])
+    blocked = blocked_lanes(w, SLOW_SPEED, BLOCK_AHEAD)
 
     def clear(lane):
         return all(not (-GAP_BEHIND < d < GAP_AHEAD) for d, _ in ahead[lane])
     side = 0
-    free = [lane for lane in ahead if not blocked(lane)]
-    if blocked(chosen) and free:
+    free = [lane for lane in ahead if lane not in blocked]
+    if chosen in blocked and free:
         goal = min(free, key=lambda lane: abs(lane - chosen))
         step = 1 if goal > chosen else -1
         if clear(chosen + step):

@@ -282,39 +282,47 @@ def test_threat_speed_shaping_prices_only_threatened_approaches_too_fast_to_stop
     assert kinds["priced"] > 0 and kinds["threatened_but_can_stop"] > 0, kinds
 
 
+def _overtaking_pair(monkeypatch, name, configs, seed, actions):
+    """Run one overtaking scenario (seed, two slow SVs) under each of ``configs`` with the same
+    ``actions(t)`` per decision, recording every call's result of batch.``name`` (a privileged
+    test the shaping reads): (return, final EV state, the recorded results) per config."""
+    import bimacppo_learning.batch as batch_mod
+
+    real = getattr(batch_mod, name)
+    runs = []
+    for cfg in configs:
+        log = []
+
+        def recorded(*args):
+            out = real(*args)
+            log.append(out)
+            return out
+        monkeypatch.setattr(batch_mod, name, recorded)
+        b = IntersectionBatch(1, map_id="three_lane_straight", config=cfg, slow_svs=2)
+        b.reset(0, seed=seed, options={"n_sv": 3, "task": "straight", "n_slow": 2})
+        for t in range(60):
+            _, _, te, tr, _ = b.step(np.array([actions(t)]))
+            if te[0] or tr[0]:
+                break
+        runs.append((b.returns[0], b.worlds[0].ego_tuple(), list(log)))
+    monkeypatch.setattr(batch_mod, name, real)
+    return runs
+
+
 def test_headway_shaping_prices_the_ticks_closing_on_the_lead_too_fast_to_stop(monkeypatch):
     """The same overtaking scenarios and actions with and without the headway term: the
     trajectories are the same, and the return is lower by exactly |headway| / decision_every per
     tick that began with ``closing_on_lead`` true. Driving at 8 m/s in the lane meets both kinds
     of tick (closing too fast on a slow SV ahead, and not yet)."""
-    import bimacppo_learning.batch as batch_mod
-
     base = EXT.to_dict()
     price = -0.5
     shaped = EnvConfig.from_dict({**base, "reward": {**base["reward"], "headway": price}})
     plain = EnvConfig.from_dict(base)
     every = shaped.action.decision_every
-    real = batch_mod.closing_on_lead
     kinds = {"priced": 0, "not": 0}
     for k in range(4):
-        runs = []
-        for cfg in (shaped, plain):
-            log = []
-
-            def test(world, tcfg):
-                out = real(world, tcfg)
-                log.append(out)
-                return out
-            monkeypatch.setattr(batch_mod, "closing_on_lead", test)
-            b = IntersectionBatch(1, map_id="three_lane_straight", config=cfg, slow_svs=2)
-            b.reset(0, seed=k, options={"n_sv": 3, "task": "straight", "n_slow": 2})
-            for _ in range(60):
-                _, _, te, tr, _ = b.step(np.array([[4, 4, 1]]))
-                if te[0] or tr[0]:
-                    break
-            runs.append((b.returns[0], b.worlds[0].ego_tuple(), list(log)))
-        monkeypatch.setattr(batch_mod, "closing_on_lead", real)
-        (r1, ego1, log1), (r2, ego2, _) = runs
+        (r1, ego1, log1), (r2, ego2, _) = _overtaking_pair(monkeypatch, "closing_on_lead", (shaped, plain), k,
+                                                           lambda t: [4, 4, 1])
         assert ego1 == ego2
         priced = int(np.sum(log1))
         kinds["priced"] += priced
@@ -327,9 +335,8 @@ def test_free_lane_term_pays_the_change_in_lanes_to_the_free_lane(monkeypatch):
     """The same overtaking scenarios and actions (a right change held, then "keep") with and
     without the lane-progress term: the trajectories are the same, and the return differs by
     free_lane times the sum over decisions of the change in ``lanes_to_free_lane`` (None at
-    either end pays nothing); among the scenarios some decisions move towards the free lane."""
-    import bimacppo_learning.batch as batch_mod
-
+    either end pays nothing); among the scenarios some decisions move towards the free lane.
+    The count is taken at the reset and after every decision, each one the next decision's start."""
     base = EXT.to_dict()
     price = -2.0
     overtake = {"sv_clip": 60.0, "pad_value": [60.0, 60.0, 0.0, 0.0]}
@@ -339,29 +346,12 @@ def test_free_lane_term_pays_the_change_in_lanes_to_the_free_lane(monkeypatch):
     plain = EnvConfig.from_dict({**base, "observation": {**base["observation"], **overtake},
                                  "action": {**base["action"], "lane_change_from": "ev"},
                                  "reward": {**base["reward"], "go_speed": 4.0}})
-    real = batch_mod.lanes_to_free_lane
     moved = 0
     for k in range(6):
-        runs = []
-        for cfg in (shaped, plain):
-            log = []
-
-            def count(world, slow, reach):
-                out = real(world, slow, reach)
-                log.append(out)
-                return out
-            monkeypatch.setattr(batch_mod, "lanes_to_free_lane", count)
-            b = IntersectionBatch(1, map_id="three_lane_straight", config=cfg, slow_svs=2)
-            b.reset(0, seed=k, options={"n_sv": 3, "task": "straight", "n_slow": 2})
-            for t in range(40):
-                _, _, te, tr, _ = b.step(np.array([[4, 3, 2 if t < 15 else 1]]))
-                if te[0] or tr[0]:
-                    break
-            runs.append((b.returns[0], b.worlds[0].ego_tuple(), list(log)))
-        monkeypatch.setattr(batch_mod, "lanes_to_free_lane", real)
-        (r1, ego1, log1), (r2, ego2, log2) = runs
+        (r1, ego1, log1), (r2, ego2, log2) = _overtaking_pair(monkeypatch, "lanes_to_free_lane", (shaped, plain), k,
+                                                              lambda t: [4, 3, 2 if t < 15 else 1])
         assert ego1 == ego2 and log2 == []
-        pairs = list(zip(log1[0::2], log1[1::2]))            # (before, after) per decision
+        pairs = list(zip(log1[:-1], log1[1:]))            # (before, after) per decision
         want = sum(price * (a - b0) for b0, a in pairs if a is not None and b0 is not None)
         moved += sum(1 for b0, a in pairs if a is not None and b0 is not None and a < b0)
         assert r1 - r2 == pytest.approx(want, abs=1e-9)

@@ -100,6 +100,7 @@ class IntersectionBatch:
         self._threat_cfg = DriverConfig.load()
         self.crossed = np.zeros(B, bool)       # EV front inside the junction box
         self.threat_entries = np.zeros(B, bool)   # ... and it entered while the junction was threatened
+        self.free_lanes: list[int | None] = [None] * B   # lanes_to_free_lane now (reward.free_lane only)
         self._X0 = np.zeros((B, 4))
         # the NMPC's share of the work, where training time goes: seconds in solve_batch, problems
         # solved, SQP iterations over them and problems that ran the second start
@@ -160,10 +161,18 @@ class IntersectionBatch:
         self.mpc_failures[i] = 0
         self.crossed[i] = False
         self.threat_entries[i] = False
+        self.free_lanes[i] = self._free_lanes(i)
         self.running[i] = True
         info = {"n_sv": scenario.n_sv, "task": task_index(scenario.task), "scenario_seed": scenario.seed,
                 "n_pcp": int(w.n_pcp)}
         return self.observe(i), info
+
+    def _free_lanes(self, i: int) -> int | None:
+        """``lanes_to_free_lane`` of slot i's world for the lane-progress term (None when it is off)."""
+        rcfg = self.cfg.reward
+        if rcfg.free_lane == 0.0:
+            return None
+        return lanes_to_free_lane(self.worlds[i], rcfg.go_speed, self.cfg.observation.sv_clip)
 
     def observe(self, i: int) -> np.ndarray:
         w = self.worlds[i]
@@ -200,9 +209,6 @@ class IntersectionBatch:
         rcfg = self.cfg.reward
         shaping = np.zeros(self.B)
         tcfg = self._threat_cfg
-        if rcfg.free_lane != 0.0:
-            ocfg = self.cfg.observation
-            lanes_before = [lanes_to_free_lane(w, rcfg.go_speed, ocfg.sv_clip) for w in self.worlds]
         for k in range(acfg.decision_every):
             for i in range(self.B):
                 X0[i] = self.worlds[i].ego_tuple()
@@ -240,10 +246,10 @@ class IntersectionBatch:
             if not alive.any():
                 break
         if rcfg.free_lane != 0.0:
-            for i in range(self.B):
-                after = lanes_to_free_lane(self.worlds[i], rcfg.go_speed, ocfg.sv_clip)
-                if lanes_before[i] is not None and after is not None:
-                    shaping[i] += rcfg.free_lane * (after - lanes_before[i])
+            for i in range(self.B):     # the count after the last decision is this one's start
+                before, self.free_lanes[i] = self.free_lanes[i], self._free_lanes(i)
+                if before is not None and self.free_lanes[i] is not None:
+                    shaping[i] += rcfg.free_lane * (self.free_lanes[i] - before)
         obs = np.empty((self.B, self.obs_dim), np.float32)
         rew = np.empty(self.B)
         term = np.zeros(self.B, bool)

@@ -282,13 +282,15 @@ class WaypointTracker:
             i += 1
         return x + qx - px, y + qy - py, psi
 
+    def ahead_of(self, k: int, x: float, y: float) -> float:
+        """How far candidate WPk lies ahead of (x, y), along the route's heading at the waypoint."""
+        return self._ahead(min(self.start + k, len(self.route) - 1), x, y)
+
     def reach_limited(self, k: int, x: float, y: float, reach: float) -> int:
-        """The farthest of WP0..WPk that lies at most ``reach`` metres ahead of (x, y), measured
-        along the route's heading at the waypoint. WP0 is always allowed: it is the nearest
-        waypoint the decoding may aim at."""
-        m = len(self.route) - 1
+        """The farthest of WP0..WPk that lies at most ``reach`` metres ahead of (x, y)
+        (``ahead_of``). WP0 is always allowed: it is the nearest waypoint the decoding may aim at."""
         for kk in range(k, 0, -1):
-            if self._ahead(min(self.start + kk, m), x, y) <= reach:
+            if self.ahead_of(kk, x, y) <= reach:
                 return kk
         return 0
 
@@ -385,11 +387,12 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     EV along a straight corridor of half-width chord_tol on the paved road (``corridor_on_road``
     with ``drivable(x, y)``, the map's test); WP0 always passes. Where WP0 is
     (``cfg.min_lookahead``) is the tracker's, built by ``WaypointTracker.for_action(route, cfg)``.
-    With ``cfg.reach_time`` set, A1 is first limited to the farthest of WP0..WP_A1 no farther
-    ahead of the EV than the distance A2's speed covers in that time
-    (`WaypointTracker.reach_limited`): the NMPC weighs the reference's position against its speed,
-    so a far waypoint pulls the EV well above the speed A2 asks for, and with the reach bounded A2
-    sets the speed.
+    With ``cfg.reach_time`` set, A1 is also limited to the farthest of WP0..WP_A1 no farther
+    ahead of the EV (``WaypointTracker.ahead_of``) than the distance A2's speed covers in that
+    time, or than ``REACH_PER_LATERAL`` times the decoded waypoint's lateral offset from the EV,
+    whichever is more: the NMPC weighs the reference's position against its speed, so a far
+    waypoint pulls the EV well above the speed A2 asks for, and with the reach bounded A2 sets the
+    speed; a lane change keeps room to be made in.
     """
     a1, a2, a3 = int(action[0]), int(action[1]), int(action[2])
     if not (0 <= a1 < cfg.n_waypoints and 0 <= a2 < len(cfg.speeds) and 0 <= a3 < len(cfg.lane_change)):
@@ -448,10 +451,9 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
                 wx, wy, wpsi = float(p[0]), float(p[1]), float(p[2])
                 changed = True
         if k > 0 and reach is not None:
-            c0 = cands[k]
-            ahead = (c0[0] - ego[0]) * math.cos(c0[2]) + (c0[1] - ego[1]) * math.sin(c0[2])
-            lateral = abs(-(wx - ego[0]) * math.sin(c0[2]) + (wy - ego[1]) * math.cos(c0[2]))
-            if ahead > max(reach, REACH_PER_LATERAL * lateral):
+            rpsi = float(cands[k][2])
+            lateral = abs(-(wx - ego[0]) * math.sin(rpsi) + (wy - ego[1]) * math.cos(rpsi))
+            if tracker.ahead_of(k, float(ego[0]), float(ego[1])) > max(reach, REACH_PER_LATERAL * lateral):
                 continue
         if not road_rule or k == 0 or corridor_on_road(float(ego[0]), float(ego[1]), wx, wy,
                                                        float(cfg.chord_tol), drivable):

@@ -61,19 +61,21 @@ def closing_on_lead(world, cfg: DriverConfig) -> bool:
     return v * v - lead_v * lead_v > 2.0 * cfg.stop_decel * gap
 
 
-def lanes_to_free_lane(world, slow_speed: float, reach: float) -> int | None:
-    """How many lanes lie between the EV's lane and the nearest lane of its carriageway that no
-    slow SV blocks: 0 when its own lane is free. A lane is blocked by an active SV in it whose
-    centre lies ahead of the EV's (along the EV's heading, at most ``reach`` metres) and whose
-    speed is below ``slow_speed``. None where the EV is on no lane (inside a junction) or every
-    lane is blocked: there is no lane to move towards. It reads the SVs' true states and lanes
-    (training rewards and yardsticks only, never the policy's observation)."""
+def blocked_lanes(world, slow_speed: float, reach: float) -> set[int] | None:
+    """The lanes (indices across the carriageway) of the EV's carriageway that a slow SV blocks:
+    an active SV in the lane whose centre lies ahead of the EV's (along the EV's heading, at most
+    ``reach`` metres) and whose speed is below ``slow_speed``. None where the EV is on no lane
+    (inside a junction). It reads the SVs' true states and lanes (training rewards and
+    yardsticks only, never the policy's observation)."""
     road = world.road
-    x, y, v, psi = world.ego_tuple()
+    x, y, _, psi = world.ego_tuple()
     here = road.lane_index(x, y)
     if here is None:
         return None
-    way = (road.lanes[here[0]].kind, road.lanes[here[0]].arm)     # the carriageway: its lanes share both
+
+    def carriageway(lane_id):       # the lanes of one carriageway share kind and arm
+        return road.lanes[lane_id].kind, road.lanes[lane_id].arm
+    way = carriageway(here[0])
     c, s = math.cos(psi), math.sin(psi)
     blocked = set()
     for st, active in zip(world.sv_states(), world.sv_active):
@@ -81,10 +83,22 @@ def lanes_to_free_lane(world, slow_speed: float, reach: float) -> int | None:
             continue
         ahead = (st[0] - x) * c + (st[1] - y) * s
         lane = road.lane_index(float(st[0]), float(st[1]))
-        if 0.0 < ahead <= reach and lane is not None and (road.lanes[lane[0]].kind, road.lanes[lane[0]].arm) == way:
+        if 0.0 < ahead <= reach and lane is not None and carriageway(lane[0]) == way:
             blocked.add(lane[1])
-    free = [k for k in range(road.n_lanes) if k not in blocked]
-    return min(abs(k - here[1]) for k in free) if free else None
+    return blocked
+
+
+def lanes_to_free_lane(world, slow_speed: float, reach: float) -> int | None:
+    """How many lanes lie between the EV's lane and the nearest lane of its carriageway that no
+    slow SV blocks (``blocked_lanes``): 0 when its own lane is free. None where the EV is on no
+    lane (inside a junction) or every lane is blocked: there is no lane to move towards."""
+    blocked = blocked_lanes(world, slow_speed, reach)
+    if blocked is None:
+        return None
+    x, y, _, _ = world.ego_tuple()
+    here = world.road.lane_index(x, y)[1]
+    free = [k for k in range(world.road.n_lanes) if k not in blocked]
+    return min(abs(k - here) for k in free) if free else None
 
 
 def junction_distance(world, y: float | None = None) -> float:
