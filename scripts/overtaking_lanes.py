@@ -23,6 +23,7 @@ from pathlib import Path
 
 from bimacppo_learning.batch import draw_n_slow
 from bimacppo_learning.evaluate import SEED_SETS, eval_seed
+from bimacppo_planner.decision import lanes_beside
 from bimacppo_planner.policy import ACTION_SELECTIONS
 from bimacppo_sim import Scenario, World, load_map
 
@@ -53,25 +54,42 @@ def distances(seed_set: str, episodes: int, slow_max: int = 2) -> Counter:
     return out
 
 
-def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2) -> dict:
+def at_edge(world: World) -> bool:
+    """Whether the EV starts in a lane at the road's edge (one side has no lane)."""
+    x, y, _, psi = world.ego_tuple()
+    return 0 in lanes_beside(world.road, x, y, psi)
+
+
+def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, episodes_out: list | None = None) -> dict:
     """{distance: Counter of failure_causes.CAUSES} of the driver ``act(env, obs) -> action`` on the
-    protocol's scenarios, run in ``env`` (an IntersectionEnv on the overtaking map)."""
+    protocol's scenarios, run in ``env`` (an IntersectionEnv on the overtaking map). With
+    ``episodes_out`` one record per scenario is appended to it: distance, whether the EV starts at
+    the road's edge (``at_edge``), outcome, and how many decisions asked A3 for a lane that is not
+    there (the side ``lanes_beside`` counts none on, on the map the decoding walks)."""
     out: dict = {}
+    sides = env.cfg.action.lane_change
     for k in range(episodes):
         seed = eval_seed(TASK, N_SV, k, seed_set)
         obs, _ = env.reset(options={"n_sv": N_SV, "task": TASK, "scenario_seed": seed,
                                     "n_slow": draw_n_slow(seed, N_SV, slow_max)})
-        d = free_lane_distance(env.world)
+        d, edge, missing = free_lane_distance(env.world), at_edge(env.world), 0
         done = False
         while not done:
-            obs, _, term, trunc, info = env.step(act(env, obs))
+            a = act(env, obs)
+            side = sides[int(a[2])]
+            if side != 0:
+                x, y, _, psi = env.world.ego_tuple()
+                missing += lanes_beside(env.world.road, x, y, psi)[0 if side < 0 else 1] == 0
+            obs, _, term, trunc, info = env.step(a)
             done = term or trunc
         out.setdefault(d, Counter())[cause_of(info)] += 1
+        if episodes_out is not None:
+            episodes_out.append({"distance": d, "edge": edge, "outcome": cause_of(info), "a3_no_lane": missing})
     return out
 
 
 def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2, action: str | None = None,
-                         mpc_config=None) -> dict:
+                         mpc_config=None, episodes_out: list | None = None) -> dict:
     """``run_by_distance`` for ``policy`` (a file, as ``bimacppo-evaluate`` takes it, or an object
     with act/predict), with the controller its file records unless ``mpc_config`` says."""
     from bimacppo_learning.env import IntersectionEnv
@@ -84,9 +102,24 @@ def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2
     env = IntersectionEnv(map_id=MAP, config=cfg, mpc_config=resolve_mpc_config(loaded, mpc_config))
     nvec = tuple(int(n) for n in env.cfg.nvec)
     try:
-        return run_by_distance(env, lambda env, obs: check_action(actor(obs), nvec), seed_set, episodes, slow_max)
+        return run_by_distance(env, lambda env, obs: check_action(actor(obs), nvec), seed_set, episodes, slow_max,
+                               episodes_out)
     finally:
         env.close()
+
+
+def by_start_lane_markdown(records: list) -> str:
+    """Success and A3's asks for a missing lane by distance and start lane (edge or middle)."""
+    lines = ["| distance | start lane | scenarios | success | A3 towards no lane (decisions per scenario) |",
+             "|---|---|---|---|---|"]
+    for d in sorted({r["distance"] for r in records}):
+        for edge in (True, False):
+            sel = [r for r in records if r["distance"] == d and r["edge"] == edge]
+            if sel:
+                lines.append(f"| {d} | {'edge' if edge else 'middle'} | {len(sel)} | "
+                             f"{sum(r['outcome'] == 'success' for r in sel)} | "
+                             f"{sum(r['a3_no_lane'] for r in sel) / len(sel):.1f} |")
+    return "\n".join(lines)
 
 
 def by_distance_markdown(by: dict) -> str:
@@ -120,10 +153,13 @@ def main(argv=None) -> int:
     for d in sorted(c):
         print(f"  {d}: {c[d]} scenarios ({100.0 * c[d] / args.episodes:.0f} %)")
     if args.policy is not None:
+        records: list = []
         by = outcomes_by_distance(args.policy, args.seed_set, args.episodes, args.slow_svs, args.action,
-                                  args.mpc_config)
+                                  args.mpc_config, records)
         print(f"\n{args.policy}, {args.action or 'recorded'} actions: outcomes by distance\n")
         print(by_distance_markdown(by))
+        print("\nby start lane (edge: a lane with no lane beside it on one side)\n")
+        print(by_start_lane_markdown(records))
     return 0
 
 

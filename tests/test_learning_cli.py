@@ -499,3 +499,42 @@ def test_the_standing_starts_study_overlay_changes_only_the_start_speed():
     standing = common_config.to_dict(WorldConfig.load(REPO / "studies" / "config" / "world_standing_starts.yaml"))
     assert {k for k in packaged if packaged[k] != standing[k]} == {"ev_speed_min"}
     assert standing["ev_speed_min"] == 0.0 < packaged["ev_speed_min"]
+
+
+def test_a_fine_tune_may_add_observation_features_only_when_told(trained, tmp_path, env_yaml, capsys):
+    """Turning a feature group on (observation.lanes) changes the input size: refused for
+    --init-policy without --fine-tune-observation; with it the run starts from the checkpoint's
+    agent widened by zero-weight inputs and records the new observation. The flag adds groups
+    only: another value of a shared key, or a group the checkpoint has and the run leaves out,
+    is refused with the key named, and the run directory is not created."""
+    import torch
+
+    from bimacppo_learning.checkpoint import load_checkpoint
+
+    cfg, run, base = _fine_tune_args(trained)
+    lanes = env_yaml("observation:\n  lanes: true\n")
+    out = tmp_path / "lanes"
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(lanes)]) == 2
+    assert "observations of size 16" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert not out.exists()
+    both = env_yaml("observation:\n  lanes: true\n  sv_clip: 30.0\n")
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(both), "--fine-tune-observation"]) == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "observation.sv_clip: 7.5 != 30.0" in line and not out.exists()
+    assert train_main(["--episodes", "2", "--run-dir", str(tmp_path / "x"), "--fine-tune-observation"]) == 2
+    assert "needs --init-policy" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert train_main([*base, "--run-dir", str(out), "--env-config", str(lanes), "--fine-tune-observation"]) == 0
+    assert json.loads((out / "run.json").read_text())["env_config"]["observation"]["lanes"] is True
+    src = load_checkpoint(sorted((run / "checkpoints").glob("*.pt"))[-1])["agent"]
+    tuned = load_checkpoint(sorted((out / "checkpoints").glob("*.pt"))[-1])["agent"]
+    assert tuned["obs_dim"] == 18
+    w_src, w_new = src["actor"]["0.weight"], tuned["actor"]["0.weight"]
+    assert w_new.shape == (w_src.shape[0], 18)
+    assert not torch.equal(w_new[:, :16], w_src)            # trained two episodes from the checkpoint
+    # and the widened run cannot be continued from, or fine-tuned back to, the checkpoint's observation
+    back = tmp_path / "back"
+    newest = sorted((out / "checkpoints").glob("*.pt"))[-1]
+    assert train_main(["--episodes", "2", "--ppo-config", str(cfg), "--no-progress", "--init-policy", str(newest),
+                       "--run-dir", str(back), "--fine-tune-observation"]) == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "leaves out the checkpoint's lanes features" in line and not back.exists()

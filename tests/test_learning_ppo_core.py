@@ -224,3 +224,33 @@ def test_direct_construction_and_replace_are_validated():
     with pytest.raises(ValueError, match="batch_workers"):
         dataclasses.replace(TrainConfig(), batch_workers=0)
     assert PPOConfig(hidden_sizes=[64, 64]).hidden_sizes == (64, 64)
+
+
+def test_widened_inputs_keep_the_agents_actions_and_values_whatever_the_new_inputs_read():
+    """ppo.widen_inputs: old inputs keep their weights and normaliser entries at their new
+    places, new inputs start at zero weight, so the widened agent's logits and values are the
+    original's for any value of the new inputs; bad column maps are refused."""
+    import torch
+
+    from bimacppo_learning.ppo import PPO, widen_inputs
+    from bimacppo_learning.ppo_config import PPOConfig
+
+    agent = PPO(5, [3, 2], PPOConfig(), seed=3)
+    rng = np.random.default_rng(0)
+    agent.obs_rms.update(rng.normal(2.0, 3.0, size=(64, 5)))
+    wide = widen_inputs(agent, [0, 1, -1, 2, 3, 4, -1])
+    assert wide.obs_dim == 7
+    assert np.array_equal(wide.obs_rms.mean[[0, 1, 3, 4, 5]], agent.obs_rms.mean)
+    assert wide.obs_rms.mean[2] == 0.0 and wide.obs_rms.var[6] == 1.0 and wide.obs_rms.count == 64
+    obs = rng.normal(size=(10, 5)).astype(np.float32)
+    for extra in (np.zeros((10, 2)), rng.normal(0.0, 50.0, size=(10, 2))):
+        w_obs = np.concatenate([obs[:, :2], extra[:, :1], obs[:, 2:], extra[:, 1:]], axis=1).astype(np.float32)
+        with torch.no_grad():
+            a = agent.actor(torch.from_numpy(agent.normalize_obs(obs)))
+            b = wide.actor(torch.from_numpy(wide.normalize_obs(w_obs)))
+            va = agent.critic(torch.from_numpy(agent.normalize_obs(obs)))
+            vb = wide.critic(torch.from_numpy(wide.normalize_obs(w_obs)))
+        assert torch.allclose(a, b, atol=1e-6) and torch.allclose(va, vb, atol=1e-6)
+    for bad in ([0, 1, 2, 3], [0, 1, 2, 3, 3], [0, 1, 2, 3, 5], [0, 1, 2, 3, 4, -2]):
+        with pytest.raises(ValueError, match="columns"):
+            widen_inputs(agent, bad)

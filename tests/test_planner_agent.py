@@ -158,7 +158,8 @@ def test_planner_rejects_bad_input(policy_file, tmp_path):
         HighLevelPlanner.load(wrong)
 
 
-@pytest.mark.parametrize("variant, frm, rights", [("ev", "ev", 20), ("chosen", "chosen", 2), ("ev_idle_reach", "ev", 20)])
+@pytest.mark.parametrize("variant, frm, rights", [("ev", "ev", 20), ("chosen", "chosen", 2), ("ev_idle_reach", "ev", 20),
+                                                  ("ev_idle_lanes", "ev", 20)])
 def test_planner_decodes_lane_changes_from_where_the_ev_drives_as_the_env_does(tmp_path, variant, frm, rights):
     """The three-lane road with A3 counted from the EV's lane or from the chosen lane (the latter
     state kept over the episode), and with A1's reach bounded by A2's speed: the planner, given
@@ -178,6 +179,8 @@ def test_planner_decodes_lane_changes_from_where_the_ev_drives_as_the_env_does(t
     seed = next(s for s in range(100) if env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": s})
                 and env.world.start_lane == "road_0")
     obs, _ = env.reset(options={"n_sv": 0, "task": "straight", "scenario_seed": seed})
+    if cfg.observation.lanes:                   # the lane features: the leftmost lane, two to its right
+        assert list(obs[-2:]) == [0.0, 2.0]
     hp.reset(env.world.ego, env.world.goal)
     seen = []
     for action in script:
@@ -192,6 +195,8 @@ def test_planner_decodes_lane_changes_from_where_the_ev_drives_as_the_env_does(t
     assert abs(lanes_over - 2.0) < (0.3 if cfg.action.reach_time else 0.15) and seen[0] and not any(seen[rights:])
     if frm == "chosen":
         assert all(seen[:rights])
+    if cfg.observation.lanes:                   # ... and two lanes over, the rightmost lane
+        assert list(obs[-2:]) == [2.0, 0.0]
 
 
 def test_the_overtaking_policy_runs_on_the_three_lane_road_as_evaluated():

@@ -505,6 +505,40 @@ def test_junction_features_follow_the_sv_rows_and_the_maps_time_to_box_rule():
         EnvConfig.from_dict({"observation": {"tta_cap": 0.0}})
 
 
+def test_lane_features_count_the_same_direction_lanes_beside_the_ev_on_the_planners_map():
+    """observation.lanes appends (lanes to the left, lanes to the right) of the EV's lane, by the
+    walk A3 decodes with: on the three-lane road 0/2, 1/1, 2/0 from left to right; against the
+    lane's direction, inside the junction and on a single-lane arm none; everything before them
+    unchanged, and the observation size grows by two."""
+    from bimacppo_planner.decision import lanes_beside
+    from bimacppo_sim import load_map
+
+    road = load_map("three_lane_straight")
+    north = math.pi / 2
+    centres = [-road.half_road + (k + 0.5) * road.lane_width for k in range(road.n_lanes)]
+    assert [lanes_beside(road, x, 0.0, north) for x in centres] == [(0, 2), (1, 1), (2, 0)]
+    assert lanes_beside(road, centres[1] + 1.2, 0.0, north + 0.3) == (1, 1)     # off-centre, turned
+    assert lanes_beside(road, centres[1], 0.0, -north) == (0, 0)                # against the lane
+    dual = load_map("dual_lane_4way")
+    y_arm = -dual.H - 20.0
+    inner, outer = 0.5 * dual.lane_width, 1.5 * dual.lane_width
+    assert lanes_beside(dual, inner, y_arm, north) == (0, 1)
+    assert lanes_beside(dual, outer, y_arm, north) == (1, 0)
+    assert lanes_beside(dual, 0.0, 0.0, north) == (0, 0)                        # inside the junction
+    assert lanes_beside(load_map("single_lane_4way"), inner, y_arm, north) == (0, 0)
+    cfg = ObservationConfig(max_sv=3, sv_clip=60.0, sv_frame="ego", pad_value=(60.0, 60.0, 0.0, 0.0),
+                            junction=True, tta_cap=8.0, lanes=True)
+    assert EnvConfig.load(overrides={"observation": {"junction": True, "lanes": True}}).obs_dim == 16 + 4 + 2
+    assert EnvConfig.load(overrides={"observation": {"lanes": True}}).obs_dim == 16 + 2
+    ego = np.array([centres[0], -20.0, 6.0, north])
+    svs = np.array([[centres[1], 0.0, 2.0, north]])
+    o = observe(cfg, ego, np.array([centres[0], 80.0, north]), svs, road)
+    without = observe(dataclasses_replace(cfg, lanes=False), ego, np.array([centres[0], 80.0, north]), svs, road)
+    assert o.shape == (22,) and np.array_equal(o[:20], without) and list(o[20:]) == [0.0, 2.0]
+    with pytest.raises(ValueError, match="road map"):
+        observe(dataclasses_replace(cfg, junction=False), ego, np.zeros(3), svs)
+
+
 def test_junction_features_carry_the_yield_rules_threat_test():
     """On the states of random drives, the privileged threat test is a function of what the
     junction features show (for the SVs in the watched area): the observation holds the signal

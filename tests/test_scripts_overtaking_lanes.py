@@ -70,3 +70,31 @@ def test_the_probe_refuses_a_reach_time_that_is_not_a_positive_number(bad, capsy
     with pytest.raises(SystemExit) as e:
         probe.main(["--reach-time", bad, "--episodes", "1"])
     assert e.value.code == 2 and "--reach-time must be a positive number" in capsys.readouterr().err
+
+
+def test_per_scenario_records_count_a3_asks_for_a_lane_that_is_not_there(capsys):
+    """A driver that always asks A3 for the left lane asks for a missing one at every decision it
+    drives in the leftmost lane and at none in the others; the records add up to the outcomes,
+    and the start lane is 'edge' exactly where one side has no lane."""
+    import numpy as np
+    from bimacppo_learning.env import IntersectionEnv
+    from bimacppo_planner.decision import EnvConfig
+
+    script = load_script("overtaking_lanes")
+    env = IntersectionEnv(map_id=script.MAP, config=EnvConfig.load(overrides={"action": {"lane_change_from": "ev"}}))
+    seen = {"left": 0, "other": 0}
+
+    def always_left(env, obs):
+        x, y, _, psi = env.world.ego_tuple()
+        seen["left" if script.lanes_beside(env.world.road, x, y, psi)[0] == 0 else "other"] += 1
+        return np.array([2, 3, 0])
+    records: list = []
+    try:
+        by = script.run_by_distance(env, always_left, "validation", 8, episodes_out=records)
+    finally:
+        env.close()
+    assert len(records) == 8 and sum(sum(c.values()) for c in by.values()) == 8
+    assert sum(r["a3_no_lane"] for r in records) == seen["left"] > 0 and seen["other"] > 0
+    assert {r["outcome"] for r in records} <= set(script.CAUSES)
+    table = script.by_start_lane_markdown(records)
+    assert table.count("\n") >= 2 and ("edge" in table or "middle" in table)

@@ -61,6 +61,10 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--fine-tune-action", action="store_true",
                    help="with --init-policy: the fine-tune decodes actions with the action section of "
                         "--env-config (e.g. action.lane_change_from); the action heads' sizes must still match")
+    p.add_argument("--fine-tune-observation", action="store_true",
+                   help="with --init-policy: the fine-tune may turn on observation features the checkpoint "
+                        "lacks (observation.junction, observation.lanes; every other observation key must "
+                        "match); their input weights start at zero, so it starts from the checkpoint's behaviour")
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast", help="NMPC solver in the loop")
     p.add_argument("--mpc-config", type=Path, default=None,
                    help="YAML overlaying bimacppo_mpc/config/mpc.yaml (lists only what it changes, e.g. "
@@ -129,6 +133,49 @@ def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_c
     return None
 
 
+def widen_for(path: Path, agent, run_meta_: dict, env_cfg: EnvConfig):
+    """(why not, agent) for a fine-tune whose observation turns on feature groups the checkpoint's
+    lacks (``decision.observation_blocks``): every other observation key must match, and the
+    agent's input layer is widened by the new groups with zero weights (``ppo.widen_inputs``).
+    The agent is returned unchanged when the groups are the same."""
+    from bimacppo_planner.decision import observation_blocks
+
+    from .checkpoint import config_differences
+    from .ppo import widen_inputs
+
+    raw = run_meta_.get("env_config")
+    try:
+        saved = EnvConfig.load() if raw is None else EnvConfig.from_dict(raw, where=f"{path} (run env_config)")
+    except ConfigError as exc:
+        return str(exc), None
+    old_blocks, new_blocks = observation_blocks(saved.observation), observation_blocks(env_cfg.observation)
+    groups = {name for name, _ in new_blocks} - {name for name, _ in old_blocks}
+    dropped = {name for name, _ in old_blocks} - {name for name, _ in new_blocks}
+    if dropped:
+        return (f"{path}: this run's observation leaves out the checkpoint's {', '.join(sorted(dropped))} "
+                "features: a fine-tune can add observation features, not remove them"), None
+    old_obs, new_obs = saved.to_dict()["observation"], env_cfg.to_dict()["observation"]
+    for name in groups:
+        old_obs[name] = new_obs[name]
+    diff = config_differences({"observation": old_obs}, {"observation": new_obs})
+    if diff:
+        return (f"{path}: was trained with another observation ({'; '.join(diff)}; checkpoint != this run): "
+                "--fine-tune-observation only turns feature groups on"), None
+    if int(agent.obs_dim) != sum(size for _, size in old_blocks):
+        return (f"{path}: its agent takes observations of size {agent.obs_dim}, but its env config gives "
+                f"{sum(size for _, size in old_blocks)}"), None
+    start, at = {}, 0
+    for name, size in old_blocks:
+        start[name] = at
+        at += size
+    columns = []
+    for name, size in new_blocks:
+        columns += [start[name] + k for k in range(size)] if name in start else [-1] * size
+    if not groups:
+        return None, agent
+    return None, widen_inputs(agent, columns)
+
+
 def _world_differs(path: Path, run_meta_: dict, world_cfg) -> str | None:
     """Why a run cannot be resumed in the training world ``world_cfg`` (None: the packaged
     world.yaml): its checkpoint records another one (none recorded = the packaged world)."""
@@ -181,7 +228,13 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
             path = args.init_policy
             meta = run_meta_of(load_checkpoint(path), path)
             agent = load_agent(path)
-            sections = tuple(name for name, free in (("observation", False), ("action", args.fine_tune_action),
+            widened = False
+            if args.fine_tune_observation:
+                why, agent = widen_for(path, agent, meta, env_cfg)
+                if why:
+                    return why, None
+                widened = True
+            sections = tuple(name for name, free in (("observation", widened), ("action", args.fine_tune_action),
                                                      ("reward", args.fine_tune_reward)) if not free)
             why = check_checkpoint_fits(path, agent.obs_dim, agent.nvec, meta, env_cfg, mpc_cfg, sections)
             if why and not args.fine_tune_reward and "reward." in why:
@@ -214,6 +267,8 @@ def train_main(argv=None) -> int:
         return fail(prog, f"--slow-svs must be in 0..3 (at most N_sv^max SVs), got {args.slow_svs}")
     if args.fine_tune_reward and args.init_policy is None:
         return fail(prog, "--fine-tune-reward needs --init-policy (a resume keeps its run's reward)")
+    if args.fine_tune_observation and args.init_policy is None:
+        return fail(prog, "--fine-tune-observation needs --init-policy (a resume keeps its run's observation)")
     if args.fine_tune_action and args.init_policy is None:
         return fail(prog, "--fine-tune-action needs --init-policy (a resume keeps its run's action decoding)")
     try:

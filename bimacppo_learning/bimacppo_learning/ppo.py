@@ -296,6 +296,40 @@ class PPO:
         self.gen.set_state(d["gen"])
 
 
+def widen_inputs(agent: PPO, columns: Sequence[int]) -> PPO:
+    """A copy of ``agent`` whose input j is the old input ``columns[j]`` (-1: a new input).
+
+    New inputs get zero weights in the actor's and the critic's first layer and a normaliser
+    entry of mean 0, variance 1, so the copy's actions and values equal the original's whatever
+    the new inputs read: a fine-tune that adds observation features starts from the checkpoint's
+    behaviour and learns what the new features are worth. The optimisers start afresh (their
+    moments were for the old first layer); the sampling generator is carried over."""
+    old_cols = [int(c) for c in columns]
+    if any(c < -1 or c >= agent.obs_dim for c in old_cols):
+        raise ValueError(f"columns must be -1 or an input of the agent (0..{agent.obs_dim - 1}), got {old_cols}")
+    kept = [c for c in old_cols if c >= 0]
+    if sorted(kept) != list(range(agent.obs_dim)):
+        raise ValueError(f"columns must keep every one of the agent's {agent.obs_dim} inputs once, got {old_cols}")
+    new = PPO(len(old_cols), agent.nvec, agent.cfg)
+    src = torch.tensor([max(c, 0) for c in old_cols])
+    fresh = torch.tensor([c < 0 for c in old_cols])
+    with torch.no_grad():
+        for old_net, new_net in ((agent.actor, new.actor), (agent.critic, new.critic)):
+            state = {k: v.clone() for k, v in old_net.state_dict().items()}
+            first = next(k for k in state if k.endswith("weight"))
+            w = state[first][:, src].clone()
+            w[:, fresh] = 0.0
+            state[first] = w
+            new_net.load_state_dict(state)
+    rms = agent.obs_rms
+    idx = np.array([max(c, 0) for c in old_cols])
+    new.obs_rms.mean = np.where([c < 0 for c in old_cols], 0.0, rms.mean[idx])
+    new.obs_rms.var = np.where([c < 0 for c in old_cols], 1.0, rms.var[idx])
+    new.obs_rms.count = rms.count
+    new.gen.set_state(agent.gen.get_state())
+    return new
+
+
 def check_state_shapes(name: str, expected: Mapping[str, torch.Tensor], got: Mapping) -> None:
     missing = sorted(set(expected) - set(got))
     extra = sorted(set(got) - set(expected))

@@ -36,6 +36,7 @@ class ObservationConfig:
     sv_frame: str = setting(choices=("paper", "ego"))   # paper: |dx|, |dy| in the map frame (eq. 20); ego: signed, in the EV's frame
     junction: bool = setting(absent=False)   # append the junction features (extension, docs/method.md); false: eq. (18)-(20) only
     tta_cap: float = setting(lo=0.0, lo_open=True)   # s; the junction features' time-to-box ceiling ("not coming")
+    lanes: bool = setting(absent=False)      # append the lane features (extension, docs/method.md)
 
 
 #: what the chord limit tests: the chord's distance from the route points, or that a corridor
@@ -121,12 +122,36 @@ class EnvConfig:
 
     @property
     def obs_dim(self) -> int:
-        o = self.observation
-        return 4 * (1 + o.max_sv) + ((1 + o.max_sv) if o.junction else 0)
+        return sum(size for _, size in observation_blocks(self.observation))
 
     @property
     def nvec(self) -> tuple[int, int, int]:
         return (self.action.n_waypoints, len(self.action.speeds), len(self.action.lane_change))
+
+
+#: the lane features: same-direction lanes to the EV's left, then to its right
+LANE_FEATURES = 2
+
+
+def observation_blocks(cfg: ObservationConfig) -> tuple[tuple[str, int], ...]:
+    """The observation's feature groups in their order, with their sizes: eq. (18)-(20)
+    ("paper"), then the optional extensions. A fine-tune that turns a group on widens the
+    checkpoint's input layer by it (``bimacppo_learning.trainer.widen_observation``), which needs
+    each group to keep its place and size whatever else is on."""
+    blocks = [("paper", 4 * (1 + cfg.max_sv))]
+    if cfg.junction:
+        blocks.append(("junction", 1 + cfg.max_sv))
+    if cfg.lanes:
+        blocks.append(("lanes", LANE_FEATURES))
+    return tuple(blocks)
+
+
+def lanes_beside(road, x: float, y: float, psi: float) -> tuple[int, int]:
+    """(lanes to the left, lanes to the right) of the lane the EV at (x, y, psi) is in, counted
+    on the planner's own map with the walk A3 decodes by (``lanes_across``): (0, 0) inside a
+    junction, off the road or against the lane's direction."""
+    lanes = lanes_across(road.lateral_point, x, y, psi)
+    return sum(1 for n in lanes if n < 0), sum(1 for n in lanes if n > 0)
 
 
 def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.ndarray, road=None) -> np.ndarray:
@@ -143,10 +168,14 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
     planner's own map, the same rule the "yield" driver's threat test applies, so the policy
     sees what a threatened junction is instead of having to compose it from the goal offsets
     and the SV rows.
+
+    Lane features (an extension, docs/method.md): the same-direction lanes to the EV's left and
+    to its right (``lanes_beside``), from the planner's map. Without them a side with no SV looks
+    the same whether it is a free lane or no lane at all, which is the choice A3 makes.
     """
     x, y, v, psi = (float(ego[0]), float(ego[1]), float(ego[2]), float(ego[3]))
     n_base = 4 * (1 + cfg.max_sv)
-    out = np.empty(n_base + ((1 + cfg.max_sv) if cfg.junction else 0), dtype=np.float32)
+    out = np.empty(sum(size for _, size in observation_blocks(cfg)), dtype=np.float32)
     out[0] = abs(x - float(goal[0]))
     out[1] = abs(y - float(goal[1]))
     out[2] = v
@@ -186,6 +215,11 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
                 out[n_base + 1 + k] = min(road.time_to_box(sx, sy, sv, spsi), cap)
             else:
                 out[n_base + 1 + k] = cap
+    if cfg.lanes:
+        if road is None:
+            raise ValueError("observation.lanes needs the road map (observe(..., road=...))")
+        left, right = lanes_beside(road, x, y, psi)
+        out[-LANE_FEATURES:] = (left, right)
     return out
 
 
