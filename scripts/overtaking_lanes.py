@@ -8,7 +8,9 @@ to pass. A lane change counted from the route's lane (`action.lane_change_from: 
 one lane beside the start lane at most, so the scenarios at distance 2 need lane changes counted
 from where the EV drives (`ev` or `chosen`, the paper's Fig. 8). Given a policy, the script also
 runs it on the same scenarios and splits its outcomes by that distance (off road apart from
-collisions with SVs), which says whether it passes slow SVs or only follows free lanes.
+collisions with SVs), which says whether it passes slow SVs or only follows free lanes, and
+again by whether the EV starts in a lane at the road's edge, with how often A3 asked for a lane
+that is not there (a side without an SV is a free lane or no lane at all).
 
     python scripts/overtaking_lanes.py --seed-set validation --episodes 100
     python scripts/overtaking_lanes.py runs/overtake/policy.pt --seed-set validation --action median
