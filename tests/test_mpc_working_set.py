@@ -125,3 +125,56 @@ def test_hold_and_go_problems_stay_in_bounds_under_numba_boundscheck():
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900, env=env)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.strip().endswith(f"SOLVED {episodes * 16 * 15}")
+
+
+def _constraint_rows():
+    """The packaged controller's constraint rows (bounds, speed tube, steering rate) and a
+    positive definite Hessian factor of its size."""
+    from bimacppo_mpc import MPCConfig
+    from bimacppo_mpc.controller import pack_params
+    cfg = MPCConfig.load()
+    P = pack_params(cfg)
+    N = cfg.horizon
+    n = 2 * N
+    m = K.n_rows(N, P)
+    G, h = np.empty((m, n)), np.empty(m)
+    zlo, zhi = np.full(n, -1.0), np.full(n, 1.0)
+    K.build_constraints(3.0, np.zeros(N), np.full(N, 10.0), zlo, zhi, P, G, h)
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((n, n))
+    H = A @ A.T + 0.5 * np.eye(n)
+    Lh = np.zeros((n, n))
+    assert K.cholesky(H, Lh, n, 0.0)
+    return G, Lh, n, rng
+
+
+def test_the_one_pass_rebuild_is_the_row_by_row_appends():
+    """qp_active_set rebuilds its working set with all row solves in one pass over Lh; the set,
+    its basis Y and factor Ls must be those of appending the rows one by one (the QP's iterates
+    depend on them), also when rows are dependent (a bound and its mirror, more rows than n)."""
+    G, Lh, n, rng = _constraint_rows()
+    m = G.shape[0]
+    dropped = 0
+    for trial in range(40):
+        nc = int(rng.integers(1, n + 1))
+        cand = rng.choice(m, nc, replace=False).astype(np.int64)
+        mirror = (cand[0] + n) % (2 * n)     # -G_i of a bound row: dependent on it
+        if trial % 4 == 0 and cand[0] < 2 * n and nc > 1 and mirror not in cand:
+            cand[-1] = mirror
+        Y1, Ls1 = np.zeros((n, n)), np.zeros((n, n))
+        y, tmp = np.zeros(n), np.zeros(max(n, m))
+        W1, nW1 = [], 0
+        for c in cand:
+            nn = K._ws_add(Lh, G, c, Y1, Ls1, nW1, n, y, tmp)
+            if nn > nW1:
+                W1.append(int(c))
+                nW1 = nn
+        Y2, Ls2, W2 = np.zeros((n, n)), np.zeros((n, n)), np.zeros(n, dtype=np.int64)
+        inW = np.zeros(m, dtype=np.bool_)
+        nW2 = K._ws_rebuild(Lh, G, cand.copy(), nc, Y2, Ls2, n, W2, inW, np.zeros(n), np.zeros(max(n, m)),
+                            np.zeros((n, n)), np.zeros(n, dtype=np.int64))
+        assert nW2 == nW1 and list(W2[:nW2]) == W1
+        assert sorted(np.flatnonzero(inW)) == sorted(W1)
+        assert np.array_equal(Y2[:, :nW2], Y1[:, :nW1]) and np.array_equal(Ls2[:nW2, :nW2], Ls1[:nW1, :nW1])
+        dropped += nc - nW1
+    assert dropped > 0
