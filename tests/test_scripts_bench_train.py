@@ -13,8 +13,10 @@ def test_concurrent_copies_report_one_copy_and_the_aggregate():
     row = next(line for line in out.stdout.splitlines() if line.startswith("| batched |"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     one, together = float(cells[2]), float(cells[3])
-    # the row's copy is the median (of two: the slower), the aggregate the sum over both
-    assert one > 0.0 and together >= 1.99 * one
+    # the row's copy is the median (of two: the slower), the aggregate the sum over both; both
+    # printed to 0.1 episodes/s, so 2 * one may overstate the exact sum by up to 0.1 and the
+    # printed sum understate it by 0.05 (3.96 + 3.98 prints as one 4.0, together 7.9)
+    assert one > 0.0 and together >= 2.0 * one - 0.15
     bad = subprocess.run([sys.executable, str(REPO / "scripts/bench_train.py"), "--concurrent", "0"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--concurrent must be in 1..64" in bad.stderr
