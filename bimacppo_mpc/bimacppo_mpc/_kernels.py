@@ -470,13 +470,20 @@ def _ws_add(Lh, G, idx, Y, Ls, nW, n, y, tmp):
     if nW >= n:
         return nW
     row = G[idx]
+    # y = Lh^{-1} row is zero before the row's first nonzero, so the solve and the products
+    # start there (the skipped terms are exact zeros: the results are the dense ones)
+    start = _first_nonzero(row, n)
+    fwd_solve_from(Lh, row, y, n, start)
+    return _ws_append(y, start, Y, Ls, nW, n, tmp)
+
+
+@njit(cache=True)
+def _first_nonzero(row, n):
+    """Index of row[:n]'s first nonzero entry (n if none)."""
     start = 0
     while start < n and row[start] == 0.0:
         start += 1
-    # y = Lh^{-1} row is zero before the row's first nonzero, so the solve and the products
-    # start there (the skipped terms are exact zeros: the results are the dense ones)
-    fwd_solve_from(Lh, row, y, n, start)
-    return _ws_append(y, start, Y, Ls, nW, n, tmp)
+    return start
 
 
 @njit(cache=True)
@@ -530,12 +537,8 @@ def _ws_rebuild(Lh, G, cand, nc, Y, Ls, n, W, inW, y, tmp, Yc, starts):
         return 0
     first = n
     for j in range(nc):
-        row = G[cand[j]]
-        st = 0
-        while st < n and row[st] == 0.0:
-            st += 1
-        starts[j] = st
-        first = min(first, st)
+        starts[j] = _first_nonzero(G[cand[j]], n)
+        first = min(first, starts[j])
     for i in range(first):
         for j in range(nc):
             Yc[i, j] = 0.0
@@ -600,15 +603,13 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
         slack[i] = b[i] if b[i] > _EPS_ACTIVE else 0.0
         inW[i] = False
     # rebuild the initial working set from the rows still active, dropping dependent ones
+    # (W never holds a row twice: rows enter it only while not in it)
     cand = W[:nW].copy()
     nc = 0
     for c in cand:
-        if slack[c] <= 0.0 and not inW[c]:
-            inW[c] = True          # marks a row listed twice; _ws_rebuild sets the kept ones
+        if slack[c] <= 0.0:
             cand[nc] = c
             nc += 1
-    for j in range(nc):
-        inW[cand[j]] = False
     nW = _ws_rebuild(Lh, G, cand, nc, Y, Ls, n, W, inW, y, tmp, Sm, starts)
     gnorm = 1.0
     for i in range(n):
