@@ -53,6 +53,7 @@ setup(
             "bimacppo-train = bimacppo_learning.cli:train_main",
             "bimacppo-evaluate = bimacppo_learning.cli:evaluate_main",
             "bimacppo-report = bimacppo_learning.report:main",
+            "bimacppo-select = bimacppo_learning.selection:main",
             "bimacppo-experiments = bimacppo_learning.experiments:main",
             "bimacppo-imitate = bimacppo_learning.imitation:main",
         ],

@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Success over training seeds from `bimacppo-evaluate --out` CSVs: one row per file (mean over
-its cells, and the N_sv = 3 cells), each cell's mean ± sample std over the files, and rliable's
-aggregates over files x cells: IQM and mean with stratified bootstrap 95 % intervals, and, with
-``--versus``, the probability that the first set improves on the second.
+its cells, and each task's success at every N_sv the files hold), each cell's mean ± sample std
+over the files, and rliable's aggregates over files x cells: IQM and mean with stratified
+bootstrap 95 % intervals, and, with ``--versus``, the probability that the first set improves on
+the second.
 
     .venv/bin/python scripts/eval_summary.py runs/exp-batched2k/dual_lane_4way/bimab-s*/eval_dual.csv
     .venv/bin/python scripts/eval_summary.py runs/jr_s*/test_median.csv \\
@@ -63,16 +64,17 @@ def main(argv=None) -> int:
         print(f"eval_summary: error: {exc}", file=sys.stderr)
         return 2
     cells = sorted(set().union(*runs), key=lambda c: (c[1], TASKS.index(c[0]) if c[0] in TASKS else 9))
-    print("| file | mean success, all cells | N_sv = 3 left / straight / right |")
-    print("|---|---|---|")
+    n_svs = sorted({c[1] for c in cells})
+    print("| file | mean success, all cells | " + " | ".join(f"N_sv = {n} left / straight / right" for n in n_svs) + " |")
+    print("|---|---|" + "---|" * len(n_svs))
     means = []
     for p, r in zip(args.csv, runs):
         m = statistics.fmean(r.values())
         means.append(m)
-        n3 = " / ".join(f"{r.get((t, 3), float('nan')):.0f}" for t in TASKS)
-        print(f"| {p} | {m:.1f} | {n3} |")
+        by_n = [" / ".join(f"{r.get((t, n), float('nan')):.0f}" for t in TASKS) for n in n_svs]
+        print(f"| {p} | {m:.1f} | " + " | ".join(by_n) + " |")
     sd = statistics.stdev(means) if len(means) > 1 else float("nan")
-    print(f"| mean ± std over {len(runs)} | {statistics.fmean(means):.1f} ± {sd:.1f} | |")
+    print(f"| mean ± std over {len(runs)} | {statistics.fmean(means):.1f} ± {sd:.1f} |" + " |" * len(n_svs))
     print()
     print("| cell | success mean ± std over files |")
     print("|---|---|")

@@ -22,7 +22,7 @@ EXECUTABLES = {
     "bimacppo_bringup": ["bimacppo-graph"],
 }
 # the training stack is a plain Python package, not part of the deployed ROS workspace
-TRAINING_EXECUTABLES = ["bimacppo-train", "bimacppo-evaluate", "bimacppo-report", "bimacppo-experiments"]
+TRAINING_EXECUTABLES = ["bimacppo-train", "bimacppo-evaluate", "bimacppo-report", "bimacppo-select", "bimacppo-experiments"]
 
 
 @pytest.fixture(scope="module")

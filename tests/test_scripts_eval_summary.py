@@ -20,6 +20,8 @@ def test_summary_aggregates_runs_and_compares_with_a_baseline(tmp_path, capsys):
     assert mod.main([*good, "--versus", *bad, "--names", "learned", "random", "--n-sv", "3", "--reps", "200"]) == 0
     out = capsys.readouterr().out
     assert out.count("| " + str(tmp_path)) == 4
+    assert "| N_sv = 0 left / straight / right | N_sv = 3 left / straight / right |" in out
+    assert f"| {good[1]} | 86.7 | 100 / nan / nan | 80 / nan / 80 |" in out
     rows = {ln.split("|")[1].strip(): ln for ln in out.splitlines() if ln.startswith("| learned") or ln.startswith("| random")}
     assert re.search(r"\| learned \| 4 \| 8[0-9.]+ \[", rows["learned"])
     assert rows["random"].startswith("| random | 1 | 20.0 [20.0, 20.0]") and rows["random"].endswith("| 1.00 [1.00, 1.00] |")

@@ -159,11 +159,12 @@ def export_policy(agent, path: str | os.PathLike, meta: Mapping[str, Any] | None
 
 
 
-def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selection: str) -> pathlib.Path:
+def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selection: str,
+                         meta: Mapping[str, Any] | None = None) -> pathlib.Path:
     """Write ``src`` (a policy export or a training checkpoint) to ``dst`` as a policy export
     that records ``selection`` as the way it acts when deployed (``Policy.selection``: the
-    planner and ``bimacppo-evaluate`` then run it so unless told otherwise). The actor and
-    normaliser are copied unchanged. ``dst`` must not exist (FileExistsError): a policy file is
+    planner and ``bimacppo-evaluate`` then run it so unless told otherwise), and ``meta``'s
+    entries beside the source's own metadata. The actor and normaliser are copied unchanged. ``dst`` must not exist (FileExistsError): a policy file is
     never overwritten. ValueError for a selection that is not deterministic."""
     from bimacppo_planner.policy import DEPLOYED_SELECTIONS, Policy, policy_payload_of_checkpoint, read_torch_file
 
@@ -176,6 +177,6 @@ def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selecti
     if isinstance(d, Mapping) and d.get("format") == CHECKPOINT_FORMAT:
         d = policy_payload_of_checkpoint(d, src)
     Policy(d, src)   # refuses anything that is not a usable policy, naming src
-    payload = {**d, "meta": {**dict(d["meta"]), "action_selection": selection}}
+    payload = {**d, "meta": {**dict(d["meta"]), **dict(meta or {}), "action_selection": selection}}
     atomic_torch_save(payload, dst)
     return dst
