@@ -113,3 +113,15 @@ def test_select_refusals_are_one_line_and_write_nothing(run, tmp_path, capsys):
     assert len(errors) == 5 and all(ln.startswith("bimacppo-select: error: ") for ln in errors), errors
     assert "exists" in errors[0] and "checkpoints/" in errors[1] and "999999" in errors[2]
     assert "ckpt_ep00000005.pt" in errors[3] and "N_sv=7" in errors[4]
+
+
+def test_select_runs_the_overtaking_protocol_and_records_it(run, tmp_path):
+    out = tmp_path / "overtake.pt"
+    assert main([str(run), str(out), "--episodes", "1", "--map", "three_lane_straight", "--tasks", "straight",
+                 "--n-sv", "3", "--slow-svs", "2", "--workers", "1", "--action", "argmax"]) == 0
+    pol = Policy.load(out)
+    record = pol.meta["chosen_on_validation"]
+    assert pol.selection == "argmax"
+    assert (record["map"], record["tasks"], record["n_sv"], record["slow_svs"]) == ("three_lane_straight",
+                                                                                   ["straight"], [3], 2)
+    assert main([str(run), str(tmp_path / "n.pt"), "--episodes", "1", "--slow-svs", "-1"]) == 2

@@ -86,7 +86,7 @@ def candidate_checkpoints(run_dir: str | pathlib.Path, from_episodes: int = 0) -
 
 def score_checkpoints(checkpoints: Iterable[tuple[int, pathlib.Path]], *, n_svs: Sequence[int],
                       tasks: Sequence[int], episodes: int, workers: int = 2, action_selection: str = "median",
-                      mpc_config: Any = None, map_id: str = "dual_lane_4way",
+                      mpc_config: Any = None, map_id: str = "dual_lane_4way", slow_svs: int = 0,
                       progress: Callable[[pathlib.Path, Any], None] | None = None) -> list[Candidate]:
     """Evaluate every checkpoint on the validation seeds (the same scenarios for each)."""
     from .evaluate import evaluate
@@ -95,6 +95,7 @@ def score_checkpoints(checkpoints: Iterable[tuple[int, pathlib.Path]], *, n_svs:
     for ep, path in checkpoints:
         cells = evaluate(str(path), map_id, n_svs, tasks, episodes, workers, random_row=False,
                          seed_set="validation", mpc_config=mpc_config, action_selection=action_selection,
+                         slow_svs=slow_svs,
                          progress=(lambda cell, path=path: progress(path, cell)) if progress else None)
         out.append(Candidate(pathlib.Path(path), int(ep), {(c.task, c.n_sv): c.pct("success") for c in cells}))
     return out
@@ -169,6 +170,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--n-sv", type=int, nargs="+", default=[0, 3])
     p.add_argument("--tasks", nargs="+", default=["left", "straight", "right"], choices=["left", "straight", "right"])
     p.add_argument("--map", default="dual_lane_4way", choices=MAPS)
+    p.add_argument("--slow-svs", type=int, default=0, metavar="N",
+                   help="slow down 0..N SVs per episode, as bimacppo-evaluate --slow-svs (the overtaking protocol: "
+                        "--map three_lane_straight --tasks straight --n-sv 3 --slow-svs 2); default 0")
     p.add_argument("--action", choices=("argmax", "median"), default="median",
                    help="how the policies act while evaluated; the written policy records it (default median)")
     p.add_argument("--mpc-config", type=pathlib.Path, default=None,
@@ -193,6 +197,8 @@ def main(argv=None) -> int:
         return fail(prog, f"--episodes must be in 1..1000, got {args.episodes}")
     if args.workers < 1:
         return fail(prog, f"--workers must be >= 1, got {args.workers}")
+    if args.slow_svs < 0:
+        return fail(prog, f"--slow-svs must be >= 0, got {args.slow_svs}")
     if args.out.exists():
         return fail(prog, f"{args.out}: exists; a policy file is not overwritten (choose another name)")
     if args.table is not None:
@@ -218,7 +224,8 @@ def main(argv=None) -> int:
     try:
         cands = score_checkpoints(ckpts, n_svs=args.n_sv, tasks=tasks, episodes=args.episodes,
                                   workers=args.workers, action_selection=args.action,
-                                  mpc_config=args.mpc_config, map_id=args.map, progress=progress)
+                                  mpc_config=args.mpc_config, map_id=args.map, slow_svs=args.slow_svs,
+                                  progress=progress)
     except (CheckpointError, EvaluationError, ConfigError, ValueError) as exc:
         return fail(prog, exc)
     finally:
@@ -226,6 +233,7 @@ def main(argv=None) -> int:
     best = choose(cands, args.criterion)
     record = {"checkpoint": best.path.name, "episodes": best.episodes, "criterion": args.criterion,
               "seed_set": "validation", "episodes_per_cell": args.episodes, "map": args.map,
+              "slow_svs": args.slow_svs,
               "n_sv": list(args.n_sv), "tasks": list(args.tasks), "worst_cell": best.worst, "mean": best.mean,
               "candidates": len(cands)}
     try:
