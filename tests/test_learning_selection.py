@@ -125,3 +125,19 @@ def test_select_runs_the_overtaking_protocol_and_records_it(run, tmp_path):
     assert (record["map"], record["tasks"], record["n_sv"], record["slow_svs"]) == ("three_lane_straight",
                                                                                    ["straight"], [3], 2)
     assert main([str(run), str(tmp_path / "n.pt"), "--episodes", "1", "--slow-svs", "-1"]) == 2
+
+
+def test_the_checkpoint_keeping_overlay_changes_only_the_checkpoint_cadence():
+    import dataclasses
+
+    from bimacppo_learning.ppo_config import load_config
+
+    from conftest import REPO
+
+    ppo, train = load_config()
+    ppo2, train2 = load_config(REPO / "studies" / "config" / "ppo_checkpoints250.yaml")
+    assert ppo2 == ppo
+    assert (train2.checkpoint_every, train2.keep_checkpoints) == (250, 25)
+    assert dataclasses.replace(train2, checkpoint_every=train.checkpoint_every,
+                               keep_checkpoints=train.keep_checkpoints) == train
+    assert train2.checkpoint_every * train2.keep_checkpoints >= 5000   # a 5,000-episode run keeps them all
