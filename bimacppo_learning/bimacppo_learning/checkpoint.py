@@ -121,13 +121,17 @@ def checkpoint_path(directory: str | os.PathLike, episodes: int) -> pathlib.Path
     return pathlib.Path(directory) / f"ckpt_ep{episodes:08d}.pt"
 
 
-def list_checkpoints(directory: str | os.PathLike) -> list[pathlib.Path]:
-    """Checkpoint files in ``directory``, oldest (fewest episodes) first."""
+def list_checkpoints_by_episodes(directory: str | os.PathLike) -> list[tuple[int, pathlib.Path]]:
+    """(episodes, path) of the checkpoint files in ``directory``, oldest (fewest episodes) first."""
     d = pathlib.Path(directory)
     if not d.is_dir():
         return []
-    found = [(int(m.group(1)), p) for p in d.iterdir() if (m := CKPT_PATTERN.match(p.name))]
-    return [p for _, p in sorted(found)]
+    return sorted((int(m.group(1)), p) for p in d.iterdir() if (m := CKPT_PATTERN.match(p.name)))
+
+
+def list_checkpoints(directory: str | os.PathLike) -> list[pathlib.Path]:
+    """Checkpoint files in ``directory``, oldest (fewest episodes) first."""
+    return [p for _, p in list_checkpoints_by_episodes(directory)]
 
 
 def latest_checkpoint(directory: str | os.PathLike) -> pathlib.Path | None:

@@ -346,6 +346,43 @@ def run_meta(env_cfg: EnvConfig, curriculum: str, map_id: str, seed: int, mpc: s
     return meta
 
 
+def add_protocol_arguments(p: argparse.ArgumentParser, *, episodes: int, episodes_help: str,
+                           n_svs: list[int]) -> None:
+    """The evaluation protocol's cell options (map, episodes, N_sv, tasks, workers, slow SVs), shared
+    by every command that runs ``evaluate``; ``protocol_tasks`` checks them."""
+    p.add_argument("--map", default="dual_lane_4way", choices=MAPS)
+    p.add_argument("--episodes", type=int, default=episodes, help=episodes_help)
+    p.add_argument("--n-sv", type=int, nargs="+", default=list(n_svs))
+    p.add_argument("--tasks", nargs="+", default=["left", "straight", "right"],
+                   choices=["left", "straight", "right"])
+    p.add_argument("--workers", type=int, default=2, help="processes (cells run in parallel)")
+    p.add_argument("--slow-svs", type=int, default=0, metavar="N",
+                   help="slow down 0..N SVs per episode, drawn from the scenario seed as in training's --slow-svs "
+                        "(the overtaking tests on three_lane_straight: --map three_lane_straight --tasks straight "
+                        "--n-sv 3 --slow-svs 2); default 0")
+
+
+def protocol_tasks(args: argparse.Namespace) -> list[int]:
+    """The task indices of ``add_protocol_arguments``' options, after checking them all
+    (ValueError with a one-line message naming the option)."""
+    from bimacppo_common.conventions import TASKS
+
+    from .evaluate import check_cells
+
+    if not 1 <= args.episodes <= 1000:
+        raise ValueError(f"--episodes must be in 1..1000, got {args.episodes}")
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if args.slow_svs < 0:
+        raise ValueError(f"--slow-svs must be >= 0, got {args.slow_svs}")
+    tasks = [TASKS.index(t) for t in args.tasks]
+    try:
+        check_cells(args.map, args.n_sv, tasks)
+    except ValueError as exc:
+        raise ValueError(f"{exc}: choose --n-sv / --tasks within it") from None
+    return tasks
+
+
 def _eval_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="bimacppo-evaluate",
@@ -354,12 +391,8 @@ def _eval_parser() -> argparse.ArgumentParser:
                     "uniform random policy's row on the same scenarios under each task, and writes CSV.")
     p.add_argument("policy", nargs="?", default=None,
                    help="policy.pt export or training checkpoint (default: the shipped policy)")
-    p.add_argument("--map", default="dual_lane_4way", choices=MAPS)
-    p.add_argument("--episodes", type=int, default=100, help="episodes per cell, 1..1000 (paper: 100)")
-    p.add_argument("--n-sv", type=int, nargs="+", default=[0, 1, 2, 3])
-    p.add_argument("--tasks", nargs="+", default=["left", "straight", "right"],
-                   choices=["left", "straight", "right"])
-    p.add_argument("--workers", type=int, default=2, help="processes (cells run in parallel)")
+    add_protocol_arguments(p, episodes=100, episodes_help="episodes per cell, 1..1000 (paper: 100)",
+                           n_svs=[0, 1, 2, 3])
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast")
     p.add_argument("--env-config", type=Path, default=None,
                    help="YAML replacing the env config stored in the policy file (default: that one)")
@@ -380,10 +413,6 @@ def _eval_parser() -> argparse.ArgumentParser:
                         "trained, seeded per episode by --sample-seed and the scenario seed)")
     p.add_argument("--sample", action="store_true", help="the same as --action sample")
     p.add_argument("--sample-seed", type=int, default=0, help="seed of --sample's action draws")
-    p.add_argument("--slow-svs", type=int, default=0, metavar="N",
-                   help="slow down 0..N SVs per episode, drawn from the scenario seed as in training's --slow-svs "
-                        "(the overtaking tests on three_lane_straight: --map three_lane_straight --tasks straight "
-                        "--n-sv 3 --slow-svs 2); default 0")
     p.add_argument("--out", type=Path, default=None,
                    help="write OUT.md (the table), OUT.csv (the policy's cells) and OUT_random.csv")
     p.add_argument("--title", default="")
@@ -395,24 +424,17 @@ def evaluate_main(argv=None) -> int:
     from bimacppo_common.conventions import TASKS
 
     from .checkpoint import CheckpointError
-    from .evaluate import (EvaluationError, check_cells, default_selection, evaluate, resolve_mpc_config,
-                           resolve_policy, to_markdown, write_outputs)
+    from .evaluate import (EvaluationError, default_selection, evaluate, resolve_mpc_config, resolve_policy,
+                           to_markdown, write_outputs)
 
     prog = "bimacppo-evaluate"
-    if not 1 <= args.episodes <= 1000:
-        return fail(prog, f"--episodes must be in 1..1000, got {args.episodes}")
-    if args.workers < 1:
-        return fail(prog, f"--workers must be >= 1, got {args.workers}")
-    if args.slow_svs < 0:
-        return fail(prog, f"--slow-svs must be >= 0, got {args.slow_svs}")
+    try:
+        tasks = protocol_tasks(args)
+    except ValueError as exc:
+        return fail(prog, exc)
     if args.sample and args.action not in (None, "sample"):
         return fail(prog, f"--sample contradicts --action {args.action}")
     selection = "sample" if args.sample else args.action
-    tasks = [TASKS.index(t) for t in args.tasks]
-    try:
-        check_cells(args.map, args.n_sv, tasks)
-    except ValueError as exc:
-        return fail(prog, f"{exc}: choose --n-sv / --tasks within it")
     try:   # fail fast, in this process, with a clear message
         spec, loaded, _ = resolve_policy(args.policy, args.env_config)
     except (CheckpointError, EvaluationError, ConfigError) as exc:

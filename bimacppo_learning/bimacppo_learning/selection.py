@@ -71,13 +71,13 @@ def choose(candidates: Sequence[Candidate], criterion: str = "worst-cell") -> Ca
 def candidate_checkpoints(run_dir: str | pathlib.Path, from_episodes: int = 0) -> list[tuple[int, pathlib.Path]]:
     """(episodes, path) of every checkpoint in ``run_dir/checkpoints`` with at least
     ``from_episodes`` episodes, oldest first. ValueError naming the directory when there is none."""
-    from .checkpoint import CKPT_PATTERN, list_checkpoints
+    from .checkpoint import list_checkpoints_by_episodes
 
     run_dir = pathlib.Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
     if not ckpt_dir.is_dir():
         raise ValueError(f"{run_dir}: no checkpoints/ directory (is it a bimacppo-train run directory?)")
-    found = [(int(CKPT_PATTERN.match(p.name).group(1)), p) for p in list_checkpoints(ckpt_dir)]
+    found = list_checkpoints_by_episodes(ckpt_dir)
     if not found:
         raise ValueError(f"{ckpt_dir}: holds no checkpoint files (ckpt_ep<episodes>.pt)")
     kept = [(e, p) for e, p in found if e >= from_episodes]
@@ -155,7 +155,7 @@ def plot(candidates: Sequence[Candidate], chosen: Candidate, path: str | pathlib
 
 
 def _parser() -> argparse.ArgumentParser:
-    from .cli import MAPS
+    from .cli import add_protocol_arguments
 
     p = argparse.ArgumentParser(
         prog="bimacppo-select",
@@ -168,18 +168,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="consider only checkpoints with at least this many episodes (default: all)")
     p.add_argument("--criterion", choices=CRITERIA, default="worst-cell",
                    help="worst-cell: best worst cell, then best mean (default); mean: the reverse")
-    p.add_argument("--episodes", type=int, default=30, help="validation episodes per cell, 1..1000 (default 30)")
-    p.add_argument("--n-sv", type=int, nargs="+", default=[0, 3])
-    p.add_argument("--tasks", nargs="+", default=["left", "straight", "right"], choices=["left", "straight", "right"])
-    p.add_argument("--map", default="dual_lane_4way", choices=MAPS)
-    p.add_argument("--slow-svs", type=int, default=0, metavar="N",
-                   help="slow down 0..N SVs per episode, as bimacppo-evaluate --slow-svs (the overtaking protocol: "
-                        "--map three_lane_straight --tasks straight --n-sv 3 --slow-svs 2); default 0")
+    add_protocol_arguments(p, episodes=30, episodes_help="validation episodes per cell, 1..1000 (default 30)",
+                           n_svs=[0, 3])
     p.add_argument("--action", choices=("argmax", "median"), default="median",
                    help="how the policies act while evaluated; the written policy records it (default median)")
     p.add_argument("--mpc-config", type=pathlib.Path, default=None,
                    help="YAML overlaying the packaged mpc.yaml (default: the one each checkpoint records)")
-    p.add_argument("--workers", type=int, default=2, help="processes (cells run in parallel)")
     p.add_argument("--table", type=pathlib.Path, default=None,
                    help="also write TABLE.md, TABLE.csv (success per checkpoint and cell) and TABLE.png")
     return p
@@ -191,25 +185,21 @@ def main(argv=None) -> int:
     from bimacppo_planner.decision import ConfigError
 
     from .checkpoint import CheckpointError, set_action_selection
-    from .cli import fail
-    from .evaluate import EvaluationError, check_cells, resolve_policy
+    from .cli import fail, protocol_tasks
+    from .evaluate import EvaluationError, resolve_policy
 
     prog = "bimacppo-select"
-    if not 1 <= args.episodes <= 1000:
-        return fail(prog, f"--episodes must be in 1..1000, got {args.episodes}")
-    if args.workers < 1:
-        return fail(prog, f"--workers must be >= 1, got {args.workers}")
-    if args.slow_svs < 0:
-        return fail(prog, f"--slow-svs must be >= 0, got {args.slow_svs}")
+    try:
+        tasks = protocol_tasks(args)
+    except ValueError as exc:
+        return fail(prog, exc)
     if args.out.exists():
         return fail(prog, f"{args.out}: exists; a policy file is not overwritten (choose another name)")
     if args.table is not None:
         for suffix in (".md", ".csv", ".png"):
             if args.table.with_name(args.table.name + suffix).exists():
                 return fail(prog, f"{args.table}{suffix}: exists; choose another --table prefix")
-    tasks = [TASKS.index(t) for t in args.tasks]
     try:
-        check_cells(args.map, args.n_sv, tasks)
         ckpts = candidate_checkpoints(args.run_dir, args.from_episodes)
         for _, path in ckpts:   # every file readable before the first episode runs
             resolve_policy(str(path))
