@@ -245,6 +245,46 @@ def _fine_tune_args(trained):
     return cfg, run, ["--episodes", "2", "--ppo-config", str(cfg), "--no-progress", "--init-policy", str(ckpt)]
 
 
+def _tb_scalars(run, tag):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run / "tb"))
+    acc.Reload()
+    return [e.value for e in acc.Scalars(tag)]
+
+
+def test_a_fine_tune_trains_under_its_ppo_config_and_records_the_one_it_trained_under(trained, tmp_path, capsys):
+    """Without --ppo-config a fine-tune keeps its source's PPO settings (and says so in its
+    checkpoints); with one, the updates run under that file (3 epochs here, not the source's 2);
+    a file that changes the networks is refused before anything is written."""
+    from bimacppo_learning.checkpoint import load_checkpoint
+
+    cfg, run, base = _fine_tune_args(trained)
+    ckpt = base[-1]
+    inherit = tmp_path / "inherit"
+    assert train_main(["--episodes", "2", "--no-progress", "--init-policy", ckpt, "--run-dir", str(inherit)]) == 0
+    saved = load_checkpoint(sorted((inherit / "checkpoints").glob("*.pt"))[-1])["config"]["ppo"]
+    assert (saved["epochs"], saved["minibatch_size"]) == (2, 64)        # the source's, not ppo.yaml's 20 / 512
+    assert set(_tb_scalars(inherit, "update/epochs")) == {2.0}
+    other = tmp_path / "ppo3.yaml"
+    other.write_text(SMALL.replace("epochs: 2", "epochs: 3\n  entropy_coef: 0.05"))
+    own = tmp_path / "own"
+    assert train_main(["--episodes", "2", "--no-progress", "--init-policy", ckpt, "--ppo-config", str(other),
+                       "--run-dir", str(own)]) == 0
+    saved = load_checkpoint(sorted((own / "checkpoints").glob("*.pt"))[-1])["config"]["ppo"]
+    assert (saved["epochs"], saved["entropy_coef"]) == (3, 0.05)
+    assert set(_tb_scalars(own, "update/epochs")) == {3.0}
+    capsys.readouterr()
+    wide = tmp_path / "wide.yaml"
+    wide.write_text(SMALL.replace("ppo:\n", "ppo:\n  hidden_sizes: [32]\n"))
+    refused = tmp_path / "refused"
+    assert train_main(["--episodes", "2", "--no-progress", "--init-policy", ckpt, "--ppo-config", str(wide),
+                       "--run-dir", str(refused)]) == 2
+    line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "hidden_sizes ((256, 128) -> (32,))" in line and "cannot change in a fine-tune" in line
+    assert not refused.exists()
+
+
 def test_a_fine_tune_may_change_the_reward_when_told_but_a_resume_may_not(trained, tmp_path, env_yaml, capsys):
     """The reward is the task a run trains for: a fine-tune given --fine-tune-reward trains with
     its own and records it; without the flag, and on a resume (one run continued), another

@@ -48,7 +48,7 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--vector", choices=("batched", "async", "sync"), default=None,
                    help="batched = all envs in this process, one NMPC and policy call per step (fastest); "
                         "async = one subprocess per env; sync = a plain in-process loop")
-    p.add_argument("--ppo-config", type=Path, default=None, help="YAML overriding bimacppo_learning/config/ppo.yaml")
+    p.add_argument("--ppo-config", type=Path, default=None, help="YAML overriding bimacppo_learning/config/ppo.yaml (with --init-policy: default the source checkpoint's PPO config; a given file applies in full; one that changes hidden_sizes, activation or obs_norm is refused)")
     p.add_argument("--env-config", type=Path, default=None,
                    help="YAML overlaying bimacppo_planner/config/env.yaml (lists only what it changes)")
     p.add_argument("--curriculum-config", default=None,
@@ -195,7 +195,10 @@ def _world_differs(path: Path, run_meta_: dict, world_cfg) -> str | None:
 
 def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg=None):
     """Every check a run can fail before it starts, so that a refused run leaves its directory as
-    it was. Returns (error message or None, the --init-policy agent or None)."""
+    it was. Returns (error message or None, the --init-policy agent or None, the run's PPO config).
+
+    A fine-tune (--init-policy) trains under its source's PPO config unless --ppo-config names
+    one; the agent adopts the run's config, so what trains is what the checkpoints record."""
     from .checkpoint import (CheckpointError, config_differences, latest_checkpoint, load_checkpoint,
                              run_meta_of)
     from .ppo_config import config_from_dict, config_to_dict
@@ -205,34 +208,29 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
     try:
         if latest is not None and not args.resume:
             return (f"{run_dir} already holds checkpoints ({latest.name}): pass --resume to continue it, "
-                    "or give another --run-dir"), None
-        if args.resume and latest is not None:
-            d = load_checkpoint(latest)
-            why = check_checkpoint_fits(latest, d["agent"]["obs_dim"], d["agent"]["nvec"],
-                                        run_meta_of(d, latest), env_cfg, mpc_cfg)
-            if why:
-                return why, None
-            try:
-                saved_pcfg, _ = config_from_dict(d["config"], source=str(latest))
-            except ValueError as exc:
-                return f"{latest}: config is invalid: {exc}", None
-            diff = config_differences(config_to_dict(saved_pcfg)["ppo"], config_to_dict(pcfg)["ppo"], "ppo")
-            if diff:
-                return (f"{latest}: was trained with another PPO config ({'; '.join(diff)}; checkpoint != "
-                        "this run): resume with the same ppo section"), None
-            why = _world_differs(latest, run_meta_of(d, latest), world_cfg)
-            if why:
-                return why, None
+                    "or give another --run-dir"), None, pcfg
         agent = None
         if args.init_policy is not None:
             path = args.init_policy
             meta = run_meta_of(load_checkpoint(path), path)
             agent = load_agent(path)
+            if args.ppo_config is None:
+                pcfg = agent.cfg
+            else:
+                diff = config_differences(config_to_dict(agent.cfg)["ppo"], config_to_dict(pcfg)["ppo"], "ppo")
+                if diff:
+                    logging.getLogger(__name__).info(
+                        "the fine-tune trains under %s, not its source's PPO config (%s)",
+                        args.ppo_config, "; ".join(diff))
+                try:
+                    agent.adopt_config(pcfg)
+                except ValueError as exc:
+                    return f"{path}: {exc}", None, pcfg
             widened = False
             if args.fine_tune_observation:
                 why, agent = widen_for(path, agent, meta, env_cfg)
                 if why:
-                    return why, None
+                    return why, None, pcfg
                 widened = True
             sections = tuple(name for name, free in (("observation", widened), ("action", args.fine_tune_action),
                                                      ("reward", args.fine_tune_reward)) if not free)
@@ -242,12 +240,30 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
             if why and not args.fine_tune_action and "action." in why:
                 why += " (--fine-tune-action lets a fine-tune change how actions decode)"
             if why:
-                return why, None
+                return why, None, pcfg
+        path = latest
+        if args.resume and latest is not None:
+            d = load_checkpoint(latest)
+            why = check_checkpoint_fits(latest, d["agent"]["obs_dim"], d["agent"]["nvec"],
+                                        run_meta_of(d, latest), env_cfg, mpc_cfg)
+            if why:
+                return why, None, pcfg
+            try:
+                saved_pcfg, _ = config_from_dict(d["config"], source=str(latest))
+            except ValueError as exc:
+                return f"{latest}: config is invalid: {exc}", None, pcfg
+            diff = config_differences(config_to_dict(saved_pcfg)["ppo"], config_to_dict(pcfg)["ppo"], "ppo")
+            if diff:
+                return (f"{latest}: was trained with another PPO config ({'; '.join(diff)}; checkpoint != "
+                        "this run): resume with the same ppo section"), None, pcfg
+            why = _world_differs(latest, run_meta_of(d, latest), world_cfg)
+            if why:
+                return why, None, pcfg
     except CheckpointError as exc:
-        return str(exc), None
+        return str(exc), None, pcfg
     except (KeyError, TypeError, ValueError) as exc:
-        return f"{path}: malformed checkpoint ({type(exc).__name__}: {exc})", None
-    return None, agent
+        return f"{path}: malformed checkpoint ({type(exc).__name__}: {exc})", None, pcfg
+    return None, agent, pcfg
 
 
 def train_main(argv=None) -> int:
@@ -288,7 +304,7 @@ def train_main(argv=None) -> int:
     except (ConfigError, ValueError, OSError) as exc:
         return fail(prog, exc)
     run_dir = args.run_dir or Path("runs") / f"{args.curriculum}-s{args.seed}"
-    why, agent = _preflight(args, env_cfg, pcfg, run_dir, mpc_cfg, world_cfg)
+    why, agent, pcfg = _preflight(args, env_cfg, pcfg, run_dir, mpc_cfg, world_cfg)
     if why:
         return fail(prog, why)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -136,6 +136,11 @@ def clipped_surrogate(new_logp: torch.Tensor, old_logp: torch.Tensor, adv: torch
     return loss, clip_frac, approx_kl
 
 
+# PPO settings that define a trained agent (its networks, and whether its inputs are normalised):
+# a fine-tune can change every other setting, not these.
+ARCHITECTURE_KEYS = ("hidden_sizes", "activation", "obs_norm")
+
+
 class PPO:
     """Actor, critic, their optimisers, the observation normaliser and the sampling RNG."""
 
@@ -267,6 +272,34 @@ class PPO:
         stats["early_stop"] = float(stop)
         stats["minibatch_steps"] = float(steps)
         return stats
+
+    def adopt_config(self, config: PPOConfig) -> None:
+        """Train on under ``config`` from now on (a fine-tune's own PPO settings).
+
+        The networks, their optimiser moments and the normaliser's statistics are kept; the
+        optimisers take the new rates and epsilon, the normaliser the new clip and variance floor.
+        Settings that shape what the agent already is cannot change: raises ValueError naming them."""
+        fixed = [k for k in ARCHITECTURE_KEYS if getattr(self.cfg, k) != getattr(config, k)]
+        if fixed:
+            raise ValueError("the PPO settings " + ", ".join(
+                f"{k} ({getattr(self.cfg, k)!r} -> {getattr(config, k)!r})" for k in fixed)
+                + " define the trained networks and cannot change in a fine-tune")
+        self.cfg = config
+        for opt in (self.actor_opt, self.critic_opt):
+            for g in opt.param_groups:
+                g["eps"] = config.adam_eps
+        self.set_lr_fraction(1.0)
+        self.obs_rms.eps = float(config.obs_norm_eps)
+        self.obs_rms.clip = float(config.obs_clip)
+
+    def set_lr_fraction(self, fraction: float) -> None:
+        """Set both optimisers' rates to ``fraction`` x the configured actor_lr / critic_lr."""
+        f = float(fraction)
+        if not (0.0 <= f <= 1.0):
+            raise ValueError(f"learning-rate fraction must be in [0, 1], got {fraction!r}")
+        for opt, base in ((self.actor_opt, self.cfg.actor_lr), (self.critic_opt, self.cfg.critic_lr)):
+            for g in opt.param_groups:
+                g["lr"] = base * f
 
     # --------------------------------------------------------------- persistence
     def state_dict(self) -> dict:

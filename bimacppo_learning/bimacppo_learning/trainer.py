@@ -60,7 +60,8 @@ class Trainer:
         env_fn: zero-argument factory of one env (picklable for the async vector env).
         scheduler: object with sample/update/log_dict/state_dict/load_state_dict.
         run_dir: where history.jsonl, tb/, checkpoints/ and policy.pt go.
-        ppo_config, train_config: default to the packaged config/ppo.yaml.
+        ppo_config, train_config: default to the packaged config/ppo.yaml (ppo_config: to a given
+            agent's own config). A given agent adopts ppo_config (``PPO.adopt_config``).
         agent: a prebuilt PPO (else one is built from the env's spaces).
         on_episode: optional callback(record) after each finished episode (hooks for tests/CLI).
         run_meta: how the run was set up (env and MPC config, curriculum, map, seed, ...; JSON-able):
@@ -78,8 +79,12 @@ class Trainer:
                 raise TypeError(f"scheduler lacks method {m}()")
         if ppo_config is None or train_config is None:
             p, t = load_config()
-            ppo_config = ppo_config or p
+            ppo_config = ppo_config or (agent.cfg if agent is not None else p)
             train_config = train_config or t
+        if agent is not None and agent.cfg != ppo_config:
+            # The run's PPO config is what trains and what its checkpoints record, also for a
+            # prebuilt agent (a fine-tune's source was trained under its own).
+            agent.adopt_config(ppo_config)
         self.pcfg, self.tcfg = ppo_config, train_config
         self.env_fn = env_fn
         self.scheduler = scheduler
