@@ -254,3 +254,46 @@ def test_widened_inputs_keep_the_agents_actions_and_values_whatever_the_new_inpu
     for bad in ([0, 1, 2, 3], [0, 1, 2, 3, 3], [0, 1, 2, 3, 5], [0, 1, 2, 3, 4, -2]):
         with pytest.raises(ValueError, match="columns"):
             widen_inputs(agent, bad)
+
+
+def test_linear_lr_schedule_falls_to_the_final_fraction_and_constant_stays():
+    p, _ = load_config()
+    assert p.lr_schedule == "constant" and p.lr_fraction(0.7) == 1.0          # the paper's single rate
+    lin = dataclasses.replace(p, lr_schedule="linear", lr_final_fraction=0.1)
+    assert [lin.lr_fraction(x) for x in (0.0, 0.5, 1.0, 1.7)] == pytest.approx([1.0, 0.55, 0.1, 0.1])
+    agent = PPO(4, NVEC, lin, seed=0)
+    agent.set_lr_fraction(lin.lr_fraction(0.5))
+    assert agent.actor_opt.param_groups[0]["lr"] == pytest.approx(0.55 * lin.actor_lr)
+    assert agent.critic_opt.param_groups[0]["lr"] == pytest.approx(0.55 * lin.critic_lr)
+    with pytest.raises(ValueError, match=r"in \[0, 1\]"):
+        agent.set_lr_fraction(1.5)
+    with pytest.raises(ValueError, match="lr_schedule"):
+        dataclasses.replace(p, lr_schedule="cosine")
+
+
+def test_a_zero_learning_rate_leaves_the_networks_as_they_were():
+    """What the schedule's last updates rely on: the rate is the optimisers' real step size."""
+    agent = PPO(4, NVEC, PPOConfig(minibatch_size=64, epochs=2), seed=3)
+    obs = np.random.default_rng(0).normal(size=(128, 4)).astype(np.float32)
+    before = [t.clone() for t in agent.actor.state_dict().values()]
+    acts, logp, _ = agent.act(obs)
+    agent.set_lr_fraction(0.0)
+    agent.update(obs, acts, logp, np.where(acts[:, 0] == 2, 1.0, -1.0).astype(np.float32), np.zeros(128, np.float32))
+    assert all(torch.equal(a, b) for a, b in zip(before, agent.actor.state_dict().values()))
+    agent.set_lr_fraction(1.0)
+    agent.update(obs, acts, logp, np.where(acts[:, 0] == 2, 1.0, -1.0).astype(np.float32), np.zeros(128, np.float32))
+    assert not all(torch.equal(a, b) for a, b in zip(before, agent.actor.state_dict().values()))
+
+
+def test_an_agent_adopts_a_fine_tunes_config_but_not_another_network():
+    src = PPO(4, NVEC, PPOConfig(minibatch_size=64, epochs=2), seed=3)
+    weights = [t.clone() for t in src.actor.state_dict().values()]
+    tuned = dataclasses.replace(src.cfg, entropy_coef=0.03, actor_lr=1e-4, adam_eps=1e-6, obs_clip=5.0)
+    src.adopt_config(tuned)
+    assert src.cfg is tuned
+    assert src.actor_opt.param_groups[0]["lr"] == 1e-4 and src.actor_opt.param_groups[0]["eps"] == 1e-6
+    assert src.obs_rms.clip == 5.0
+    assert all(torch.equal(a, b) for a, b in zip(weights, src.actor.state_dict().values()))
+    with pytest.raises(ValueError, match=r"hidden_sizes \(\(256, 128\) -> \(64,\)\), activation"):
+        src.adopt_config(dataclasses.replace(tuned, hidden_sizes=(64,), activation="relu"))
+    assert src.cfg is tuned

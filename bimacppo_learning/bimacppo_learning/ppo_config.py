@@ -22,6 +22,7 @@ DEFAULT_PATH = pathlib.Path(PPO_YAML.path)
 
 ACTIVATIONS = ("tanh", "relu")
 VECTOR_MODES = ("batched", "async", "sync")
+LR_SCHEDULES = ("constant", "linear")
 _POSITIVE = dict(lo=0.0, lo_open=True)
 
 
@@ -33,6 +34,8 @@ class PPOConfig:
     activation: str = setting(choices=ACTIVATIONS)
     actor_lr: float = setting(**_POSITIVE)
     critic_lr: float = setting(**_POSITIVE)
+    lr_schedule: str = setting(choices=LR_SCHEDULES)
+    lr_final_fraction: float = setting(lo=0.0, hi=1.0)
     adam_eps: float = setting(**_POSITIVE)
     epochs: int = setting(lo=1)
     gamma: float = setting(lo=0.0, hi=1.0)
@@ -49,6 +52,16 @@ class PPOConfig:
     init_gain_hidden: float = setting(**_POSITIVE)
     init_gain_policy: float = setting(**_POSITIVE)
     init_gain_value: float = setting(**_POSITIVE)
+
+    def lr_fraction(self, progress: float) -> float:
+        """The share of actor_lr / critic_lr to use after ``progress`` (0..1) of the budget.
+
+        ``linear`` falls from 1 to lr_final_fraction: late updates take smaller steps, so the
+        policy a run ends with is not one large 20-epoch step away from a better one."""
+        if self.lr_schedule == "constant":
+            return 1.0
+        p = min(max(float(progress), 0.0), 1.0)
+        return 1.0 - p * (1.0 - self.lr_final_fraction)
 
 
 @config_class(PPO_YAML, "train")
