@@ -19,6 +19,7 @@ pytestmark = pytest.mark.ros
 
 from bimacppo_sim import Scenario, World, load_map  # noqa: E402
 from bimacppo_interfaces import contract as I  # noqa: E402
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from bimacppo_bag import mcap_io  # noqa: E402
 
 ENV = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get("AMENT_PREFIX_PATH", sys.prefix))
@@ -147,6 +148,13 @@ def _planner(policy_file, *extra):
                   "-p", f"policy_path:={policy_file}", *extra)
 
 
+# The observer compares every tick of the episode, so it keeps them all: with the contract's
+# depth of 10 (enough for the nodes, which use the newest state) a reader whose spin lags the
+# lockstep loop on a loaded machine has older ticks overwritten in its queue before it takes them.
+OBSERVER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE)
+
+
 @pytest.mark.parametrize("which", ["paper", "extended"])
 def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_extended, which):
     policy_file = policy_file if which == "paper" else policy_file_extended
@@ -157,7 +165,7 @@ def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_
     subs = [
         node.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM,
                                  lambda m: odoms.setdefault(I.stamp_to_ns(m.header.stamp), I.odometry_to_state(m)),
-                                 I.STATE_QOS),
+                                 OBSERVER_QOS),
         node.create_subscription(I.DiagnosticStatus, I.TOPIC_RESULT,
                                  lambda m: results.append(I.status_to_result(m)), I.RESULT_QOS),
         node.create_subscription(I.DiagnosticStatus, I.TOPIC_PLANNER_RESULT,
