@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from bimacppo_common.conventions import TASKS
 from bimacppo_curriculum import SCHEDULERS, make_scheduler
 
 from bimacppo_planner.decision import ConfigError, EnvConfig
@@ -369,8 +370,7 @@ def add_protocol_arguments(p: argparse.ArgumentParser, *, episodes: int, episode
     p.add_argument("--map", default="dual_lane_4way", choices=MAPS)
     p.add_argument("--episodes", type=int, default=episodes, help=episodes_help)
     p.add_argument("--n-sv", type=int, nargs="+", default=list(n_svs))
-    p.add_argument("--tasks", nargs="+", default=["left", "straight", "right"],
-                   choices=["left", "straight", "right"])
+    p.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
     p.add_argument("--workers", type=int, default=2, help="processes (cells run in parallel)")
     p.add_argument("--slow-svs", type=int, default=0, metavar="N",
                    help="slow down 0..N SVs per episode, drawn from the scenario seed as in training's --slow-svs "
@@ -381,8 +381,6 @@ def add_protocol_arguments(p: argparse.ArgumentParser, *, episodes: int, episode
 def protocol_tasks(args: argparse.Namespace) -> list[int]:
     """The task indices of ``add_protocol_arguments``' options, after checking them all
     (ValueError with a one-line message naming the option)."""
-    from bimacppo_common.conventions import TASKS
-
     from .evaluate import check_cells
 
     if not 1 <= args.episodes <= 1000:
@@ -437,8 +435,6 @@ def _eval_parser() -> argparse.ArgumentParser:
 
 def evaluate_main(argv=None) -> int:
     args = _eval_parser().parse_args(argv)
-    from bimacppo_common.conventions import TASKS
-
     from .checkpoint import CheckpointError
     from .evaluate import (EvaluationError, default_selection, evaluate, resolve_mpc_config, resolve_policy,
                            to_markdown, write_outputs)
