@@ -42,7 +42,7 @@ setup(
     packages=find_packages(include=[PACKAGE, PACKAGE + ".*"]),
     include_package_data=True,
     package_data={PACKAGE: ["**/*.yaml"]},
-    install_requires=["numpy", "torch", "gymnasium", "pyyaml", "tqdm", "matplotlib",
+    install_requires=["numpy", "scipy", "torch", "gymnasium", "pyyaml", "tqdm", "matplotlib",
                       "bimacppo_common", "bimacppo_sim", "bimacppo_mpc", "bimacppo_curriculum", "bimacppo_planner"],
     zip_safe=False,
     description="Training stack of BiM-ACPPO: Gymnasium env, PPO, curricula runs, evaluation, experiments.",

@@ -1,6 +1,7 @@
 """The evaluation protocol with any policy: files, predict()/act() objects, the random baseline,
 and failures in worker processes (they end the run with one error, never a hang)."""
 import csv
+import io
 import os
 import pickle
 
@@ -282,3 +283,34 @@ def test_slow_svs_runs_the_overtaking_protocol_the_way_training_draws_it():
     assert any(slowed)                                  # the draw does slow SVs in these episodes
     with pytest.raises(ValueError, match="slow_svs must be >= 0"):
         ev.evaluate(shipped_policy_path(), "three_lane_straight", (3,), (j,), 1, workers=1, slow_svs=-1)
+
+
+def _wilson(k, n, z=1.959963984540054):
+    """The Wilson score interval in closed form, to check the library call against."""
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return 100 * (centre - half), 100 * (centre + half)
+
+
+@pytest.mark.parametrize("k,n", [(95, 100), (100, 100), (0, 30), (487, 500)])
+def test_success_interval_is_the_wilson_interval_and_reaches_the_tables(k, n):
+    from collections import Counter
+    cell = ev.CellResult(1, 3, Counter(success=k, collision=n - k), [])
+    lo, hi = cell.success_interval()
+    assert (lo, hi) == pytest.approx(_wilson(k, n), abs=1e-6)
+    assert lo <= cell.pct("success") <= hi and 0.0 <= lo and hi <= 100.0
+    if 0 < k < n:
+        assert lo < cell.pct("success") < hi
+    row = next(csv.DictReader(io.StringIO(ev.to_csv([cell]))))
+    assert (float(row["success_ci_low"]), float(row["success_ci_high"])) == pytest.approx((lo, hi), abs=0.006)
+    md = ev.to_markdown([cell])
+    assert f"| straight | {cell.pct('success'):.0f} [{lo:.1f}, {hi:.1f}] of {n} |" in md
+
+
+def test_a_wider_sample_narrows_the_interval_and_an_empty_cell_has_none():
+    from collections import Counter
+    small = ev.CellResult(0, 3, Counter(success=95, collision=5), []).success_interval()
+    large = ev.CellResult(0, 3, Counter(success=475, collision=25), []).success_interval()
+    assert large[1] - large[0] < small[1] - small[0]
+    assert all(np.isnan(v) for v in ev.CellResult(0, 3, Counter(), []).success_interval())
