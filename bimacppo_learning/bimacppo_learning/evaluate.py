@@ -34,13 +34,13 @@ import pickle
 import queue
 import warnings
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
-from bimacppo_common.conventions import OUTCOMES, TASKS
+from bimacppo_common.conventions import TASKS
 from scipy.stats import binomtest
 
 from bimacppo_planner.policy import CheckpointError
