@@ -271,6 +271,34 @@ def test_linear_lr_schedule_falls_to_the_final_fraction_and_constant_stays():
         dataclasses.replace(p, lr_schedule="cosine")
 
 
+def test_linear_entropy_schedule_lowers_the_bonus_the_update_uses():
+    p, _ = load_config()
+    assert p.entropy_schedule == "constant" and p.entropy_coef_at(0.9) == p.entropy_coef
+    lin = dataclasses.replace(p, entropy_schedule="linear", entropy_final_fraction=0.0, minibatch_size=64, epochs=2)
+    assert [lin.entropy_coef_at(x) for x in (0.0, 0.25, 1.0, 2.0)] == pytest.approx(
+        [p.entropy_coef, 0.75 * p.entropy_coef, 0.0, 0.0])
+    agent = PPO(4, NVEC, lin, seed=3)
+    agent.set_progress(0.5)
+    assert agent.entropy_coef == pytest.approx(0.5 * p.entropy_coef)
+    assert agent.actor_opt.param_groups[0]["lr"] == pytest.approx(lin.actor_lr)    # the rates keep their own schedule
+    # zero advantages: only the entropy bonus moves the actor, so at the schedule's end it stays put
+    obs = np.random.default_rng(0).normal(size=(128, 4)).astype(np.float32)
+    acts, logp, _ = agent.act(obs)
+    zero = np.zeros(128, np.float32)
+    before = [t.clone() for t in agent.actor.state_dict().values()]
+    agent.set_progress(1.0)
+    agent.update(obs, acts, logp, zero, zero)
+    assert all(torch.equal(a, b) for a, b in zip(before, agent.actor.state_dict().values()))
+    agent.set_progress(0.0)
+    ent0 = float(agent.dist(torch.as_tensor(obs)).entropy().mean())
+    agent.update(obs, acts, logp, zero, zero)
+    assert float(agent.dist(torch.as_tensor(obs)).entropy().mean()) > ent0
+    with pytest.raises(ValueError, match="entropy_schedule"):
+        dataclasses.replace(p, entropy_schedule="cosine")
+    with pytest.raises(ValueError, match="entropy_final_fraction"):
+        dataclasses.replace(p, entropy_final_fraction=1.5)
+
+
 def test_a_zero_learning_rate_leaves_the_networks_as_they_were():
     """What the schedule's last updates rely on: the rate is the optimisers' real step size."""
     agent = PPO(4, NVEC, PPOConfig(minibatch_size=64, epochs=2), seed=3)

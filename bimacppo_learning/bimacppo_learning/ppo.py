@@ -163,6 +163,7 @@ class PPO:
                                     c.init_gain_hidden, c.init_gain_value)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr, eps=c.adam_eps)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr, eps=c.adam_eps)
+        self.entropy_coef = float(c.entropy_coef)   # moved by set_progress under entropy_schedule
         self.obs_rms = RunningMeanStd(self.obs_dim, c.obs_norm_eps, c.obs_clip)
         # Own generator: action sampling and minibatch shuffles stay reproducible whatever else
         # (env code, other libraries) draws from torch's global RNG.
@@ -204,7 +205,8 @@ class PPO:
                advantages: np.ndarray, returns: np.ndarray) -> dict[str, float]:
         """`epochs` passes of shuffled minibatches over one flattened rollout.
 
-        Actor loss = clipped surrogate - entropy_coef * entropy; critic loss = MSE to the GAE
+        Actor loss = clipped surrogate - entropy coefficient * entropy (``self.entropy_coef``, the
+        config's value moved by its schedule in ``set_progress``); critic loss = MSE to the GAE
         returns; each network has its own optimiser and grad-norm clip.
         """
         c = self.cfg
@@ -238,7 +240,7 @@ class PPO:
                 new_lp = d.log_prob(A[idx])
                 pl, cf, kl = clipped_surrogate(new_lp, LP[idx], adv, c.clip_eps)
                 ent = d.entropy().mean()
-                actor_loss = pl - c.entropy_coef * ent
+                actor_loss = pl - self.entropy_coef * ent
                 self.actor_opt.zero_grad(set_to_none=True)
                 actor_loss.backward()
                 agn = nn.utils.clip_grad_norm_(self.actor.parameters(), c.max_grad_norm)
@@ -288,9 +290,15 @@ class PPO:
         for opt in (self.actor_opt, self.critic_opt):
             for g in opt.param_groups:
                 g["eps"] = config.adam_eps
-        self.set_lr_fraction(1.0)
+        self.set_progress(0.0)
         self.obs_rms.eps = float(config.obs_norm_eps)
         self.obs_rms.clip = float(config.obs_clip)
+
+    def set_progress(self, progress: float) -> None:
+        """Move the scheduled settings (learning rates, entropy bonus) to where the config's
+        schedules put them after ``progress`` (0..1) of the run's budget."""
+        self.set_lr_fraction(self.cfg.lr_fraction(progress))
+        self.entropy_coef = float(self.cfg.entropy_coef_at(progress))
 
     def set_lr_fraction(self, fraction: float) -> None:
         """Set both optimisers' rates to ``fraction`` x the configured actor_lr / critic_lr."""

@@ -22,7 +22,7 @@ DEFAULT_PATH = pathlib.Path(PPO_YAML.path)
 
 ACTIVATIONS = ("tanh", "relu")
 VECTOR_MODES = ("batched", "async", "sync")
-LR_SCHEDULES = ("constant", "linear")
+SCHEDULES = ("constant", "linear")   # how a scheduled setting moves with the share of the budget done
 _POSITIVE = dict(lo=0.0, lo_open=True)
 
 
@@ -34,7 +34,7 @@ class PPOConfig:
     activation: str = setting(choices=ACTIVATIONS)
     actor_lr: float = setting(**_POSITIVE)
     critic_lr: float = setting(**_POSITIVE)
-    lr_schedule: str = setting(choices=LR_SCHEDULES)
+    lr_schedule: str = setting(choices=SCHEDULES)
     lr_final_fraction: float = setting(lo=0.0, hi=1.0)
     adam_eps: float = setting(**_POSITIVE)
     epochs: int = setting(lo=1)
@@ -43,6 +43,8 @@ class PPOConfig:
     clip_eps: float = setting(lo=0.0, hi=1.0, lo_open=True, hi_open=True)
     minibatch_size: int = setting(lo=1)
     entropy_coef: float = setting(lo=0.0)
+    entropy_schedule: str = setting(choices=SCHEDULES)
+    entropy_final_fraction: float = setting(lo=0.0, hi=1.0)
     max_grad_norm: float = setting(**_POSITIVE)
     normalize_advantages: bool
     target_kl: float | None = setting(**_POSITIVE)
@@ -53,15 +55,31 @@ class PPOConfig:
     init_gain_policy: float = setting(**_POSITIVE)
     init_gain_value: float = setting(**_POSITIVE)
 
+    @staticmethod
+    def schedule_fraction(schedule: str, final_fraction: float, progress: float) -> float:
+        """The share of a scheduled setting in force after ``progress`` (0..1, clipped) of the
+        budget: 1 throughout for ``constant``; for ``linear`` from 1 down to ``final_fraction``."""
+        if schedule == "constant":
+            return 1.0
+        p = min(max(float(progress), 0.0), 1.0)
+        return 1.0 - p * (1.0 - final_fraction)
+
     def lr_fraction(self, progress: float) -> float:
         """The share of actor_lr / critic_lr to use after ``progress`` (0..1) of the budget.
 
         ``linear`` falls from 1 to lr_final_fraction: late updates take smaller steps, so the
         policy a run ends with is not one large 20-epoch step away from a better one."""
-        if self.lr_schedule == "constant":
-            return 1.0
-        p = min(max(float(progress), 0.0), 1.0)
-        return 1.0 - p * (1.0 - self.lr_final_fraction)
+        return self.schedule_fraction(self.lr_schedule, self.lr_final_fraction, progress)
+
+    def entropy_coef_at(self, progress: float) -> float:
+        """The entropy bonus after ``progress`` (0..1) of the budget.
+
+        ``linear`` lowers it from entropy_coef to entropy_final_fraction x entropy_coef: the
+        bonus that keeps the heads exploring early stops holding the trained policy's
+        distributions wide, so the action it is deployed with (median or argmax) is the one it
+        was trained to take rather than the centre of a wide distribution."""
+        return self.entropy_coef * self.schedule_fraction(self.entropy_schedule, self.entropy_final_fraction,
+                                                          progress)
 
 
 @config_class(PPO_YAML, "train")

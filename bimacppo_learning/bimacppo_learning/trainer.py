@@ -291,7 +291,7 @@ class Trainer:
                         break
                 if buf.size * N >= 2:
                     c4 = time.perf_counter()
-                    agent.set_lr_fraction(cfg.lr_fraction(self.episodes / budget))
+                    agent.set_progress(self.episodes / budget)
                     self._update(buf, obs, writer)
                     tm["update"] += time.perf_counter() - c4
                 if (self.episodes - self._last_ckpt_episodes >= self.tcfg.checkpoint_every
@@ -366,6 +366,7 @@ class Trainer:
             torch.set_num_threads(acting_threads)
         stats["update_s"] = time.monotonic() - t0
         stats["actor_lr"] = float(agent.actor_opt.param_groups[0]["lr"])
+        stats["entropy_coef"] = float(agent.entropy_coef)
         stats["samples"] = float(data["obs"].shape[0])
         self.updates += 1
         if writer is not None:
