@@ -242,7 +242,7 @@ class Trainer:
         return obs
 
     def _loop(self, venv, budget: int, writer, bar) -> None:
-        agent, cfg = self.agent, self.pcfg
+        agent = self.agent
         N, T = venv.num_envs, self.tcfg.rollout_steps
         buf = RolloutBuffer(T, N, agent.obs_dim, len(agent.nvec))
         draws = [self._draw_episode() for _ in range(N)]
