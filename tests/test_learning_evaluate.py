@@ -4,6 +4,7 @@ import csv
 import io
 import os
 import pickle
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -255,7 +256,6 @@ def test_checkpoint_error_survives_pickling():
 def test_slow_svs_runs_the_overtaking_protocol_the_way_training_draws_it():
     """evaluate(slow_svs=N) slows draw_n_slow(seed, N_sv, N) SVs per episode, as training's
     --slow-svs does: the same counts as a hand-written loop that sets n_slow itself."""
-    from collections import Counter
 
     from bimacppo_common.conventions import TASKS
     from bimacppo_learning.batch import draw_n_slow
@@ -295,7 +295,6 @@ def _wilson(k, n, z=1.959963984540054):
 
 @pytest.mark.parametrize("k,n", [(95, 100), (100, 100), (0, 30), (487, 500)])
 def test_success_interval_is_the_wilson_interval_and_reaches_the_tables(k, n):
-    from collections import Counter
     cell = ev.CellResult(1, 3, Counter(success=k, collision=n - k), [])
     lo, hi = cell.success_interval()
     assert (lo, hi) == pytest.approx(_wilson(k, n), abs=1e-6)
@@ -309,7 +308,6 @@ def test_success_interval_is_the_wilson_interval_and_reaches_the_tables(k, n):
 
 
 def test_a_wider_sample_narrows_the_interval_and_an_empty_cell_has_none():
-    from collections import Counter
     small = ev.CellResult(0, 3, Counter(success=95, collision=5), []).success_interval()
     large = ev.CellResult(0, 3, Counter(success=475, collision=25), []).success_interval()
     assert large[1] - large[0] < small[1] - small[0]

@@ -84,14 +84,14 @@ class CellResult:
     def pct(self, outcome: str) -> float:
         return 100.0 * self.counts.get(outcome, 0) / max(self.n, 1)
 
-    def success_interval(self, level: float | None = None) -> tuple[float, float]:
+    def success_interval(self, level: float = CI_LEVEL) -> tuple[float, float]:
         """Wilson score interval of the success rate in percent (scipy's binomtest); (nan, nan)
         for a cell without episodes. Wilson, not the normal approximation: cells sit near 100 %,
         where the normal interval runs past 100 and collapses to a point at 100 %."""
         if self.n == 0:
             return float("nan"), float("nan")
         ci = binomtest(int(self.counts.get("success", 0)), self.n).proportion_ci(
-            confidence_level=CI_LEVEL if level is None else level, method="wilson")
+            confidence_level=level, method="wilson")
         return 100.0 * ci.low, 100.0 * ci.high
 
 
@@ -483,42 +483,40 @@ def to_markdown(results: list[CellResult], title: str = "", notes: Iterable[str]
             lines.append(f"| {TASKS[t]}, random policy | " + " | ".join(_row(rand, t, n_svs)) + " |")
     if rand:
         lines += ["", "random policy: uniform random actions on the same scenario seeds (the floor)."]
+    tasks = sorted({c.task for c in mine})
+
+    def cell_table(caption: str, column: str, text: Callable[[CellResult], str | None]) -> list[str]:
+        """One more table over the policy's cells: a caption, one column per N_sv, ``text(cell)``
+        in each (None, or no cell there: '–')."""
+        out = ["", caption, "", "| task | " + " | ".join(f"N_sv={n}{column}" for n in n_svs) + " |", sep]
+        for t in tasks:
+            row = [None if by.get((t, n)) is None else text(by[(t, n)]) for n in n_svs]
+            out.append(f"| {TASKS[t]} | " + " | ".join("–" if x is None else x for x in row) + " |")
+        return out
+
+    def interval(c: CellResult) -> str | None:
+        if c.n == 0:
+            return None
+        lo, hi = c.success_interval()
+        return f"{c.pct('success'):.0f} [{lo:.1f}, {hi:.1f}] of {c.n}"
+
+    def comfort(c: CellResult) -> str | None:
+        q = c.comfort
+        if q is None or not q.ticks:
+            return None
+        return f"{q.full_lock_pct:.1f} / {q.reversal_pct:.1f} / {q.rms_jerk:.1f} / {q.alternation_pct:.1f}"
+
     if by:
-        lines += ["", f"Success (%) with its {100 * CI_LEVEL:.0f} % Wilson score interval (the policy's cells)", "",
-                  "| task | " + " | ".join(f"N_sv={n} success [interval]" for n in n_svs) + " |", sep]
-        for t in sorted({c.task for c in mine}):
-            row = []
-            for n in n_svs:
-                c = by.get((t, n))
-                if c is None or c.n == 0:
-                    row.append("–")
-                else:
-                    lo, hi = c.success_interval()
-                    row.append(f"{c.pct('success'):.0f} [{lo:.1f}, {hi:.1f}] of {c.n}")
-            lines.append(f"| {TASKS[t]} | " + " | ".join(row) + " |")
+        lines += cell_table(f"Success (%) with its {100 * CI_LEVEL:.0f} % Wilson score interval (the policy's cells)",
+                            " success [interval]", interval)
     if any(c.comfort is not None and c.comfort.ticks for c in mine):
-        lines += ["", "Ride comfort (the policy's cells): ticks at full steering lock (%) / lock-to-lock "
-                      "reversals between consecutive ticks (%) / RMS jerk (m/s³) / go-stop alternations "
-                      "between consecutive decisions (%)", "",
-                  "| task | " + " | ".join(f"N_sv={n} lock / rev. / jerk / alt." for n in n_svs) + " |", sep]
-        for t in sorted({c.task for c in mine}):
-            row = []
-            for n in n_svs:
-                c = by.get((t, n))
-                q = None if c is None else c.comfort
-                row.append("–" if q is None or not q.ticks else
-                           f"{q.full_lock_pct:.1f} / {q.reversal_pct:.1f} / {q.rms_jerk:.1f} / {q.alternation_pct:.1f}")
-            lines.append(f"| {TASKS[t]} | " + " | ".join(row) + " |")
+        lines += cell_table("Ride comfort (the policy's cells): ticks at full steering lock (%) / lock-to-lock "
+                            "reversals between consecutive ticks (%) / RMS jerk (m/s³) / go-stop alternations "
+                            "between consecutive decisions (%)", " lock / rev. / jerk / alt.", comfort)
     if any(c.n_sv > 0 for c in mine):
-        lines += ["", "Entered the junction while the scripted yield rule's threat test held (% of the "
-                      "policy's episodes; measured on the true SV states)", "",
-                  "| task | " + " | ".join(f"N_sv={n}" for n in n_svs) + " |", sep]
-        for t in sorted({c.task for c in mine}):
-            row = []
-            for n in n_svs:
-                c = by.get((t, n))
-                row.append("–" if c is None else f"{100.0 * c.threat_entries / max(c.n, 1):.0f}")
-            lines.append(f"| {TASKS[t]} | " + " | ".join(row) + " |")
+        lines += cell_table("Entered the junction while the scripted yield rule's threat test held (% of the "
+                            "policy's episodes; measured on the true SV states)", "",
+                            lambda c: f"{100.0 * c.threat_entries / max(c.n, 1):.0f}")
     return "\n".join(lines) + "\n"
 
 
