@@ -22,8 +22,6 @@ import argparse
 import json
 import os
 import pathlib
-import resource
-import statistics
 import subprocess
 import sys
 import tempfile

@@ -40,7 +40,6 @@ def _write_config(d, name="exp.yaml", **extra):
     for k, v in extra.items():
         doc[k] = {**doc[k], **v} if isinstance(v, dict) else v
     p = d / name
-    import yaml
 
     p.write_text(yaml.safe_dump(doc))
     return p

@@ -5,7 +5,6 @@ untrained policy exported by the test (``policy_file``), so no shipped policy is
 An untrained policy still acts deterministically (argmax), which is all these tests need.
 """
 import os
-import pathlib
 import signal
 import subprocess
 import sys

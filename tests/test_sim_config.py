@@ -8,7 +8,7 @@ import yaml
 
 from bimacppo_common import config
 from bimacppo_common.config import ConfigError
-from bimacppo_sim import VehicleConfig, World, WorldConfig, load_map
+from bimacppo_sim import World, WorldConfig, load_map
 from bimacppo_sim.config import CONFIG_DIR, STYLES, DriverConfig, StyleConfig, SVConfig
 
 

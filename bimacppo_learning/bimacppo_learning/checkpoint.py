@@ -170,7 +170,7 @@ def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selecti
     planner and ``bimacppo-evaluate`` then run it so unless told otherwise), and ``meta``'s
     entries beside the source's own metadata. The actor and normaliser are copied unchanged. ``dst`` must not exist (FileExistsError): a policy file is
     never overwritten. ValueError for a selection that is not deterministic."""
-    from bimacppo_planner.policy import DEPLOYED_SELECTIONS, Policy, policy_payload_of_checkpoint, read_torch_file
+    from bimacppo_planner.policy import DEPLOYED_SELECTIONS, policy_payload_of_checkpoint
 
     if selection not in DEPLOYED_SELECTIONS:
         raise ValueError(f"action selection must be one of {DEPLOYED_SELECTIONS}, got {selection!r}")

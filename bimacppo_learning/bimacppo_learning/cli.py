@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from bimacppo_common.conventions import TASKS
-from bimacppo_curriculum import SCHEDULERS, make_scheduler
+from bimacppo_curriculum import make_scheduler
 
 from bimacppo_planner.decision import ConfigError, EnvConfig
 

@@ -15,7 +15,7 @@ import pathlib
 from typing import Mapping
 
 from bimacppo_common import config
-from bimacppo_common.config import ConfigError, Packaged, config_class, invalid, setting
+from bimacppo_common.config import ConfigError, Packaged, config_class, setting
 
 PPO_YAML = Packaged("bimacppo_learning", "config/ppo.yaml")
 DEFAULT_PATH = pathlib.Path(PPO_YAML.path)

@@ -13,7 +13,7 @@ from collections import Counter
 
 from bimacppo_common.conventions import TASKS
 
-from .drivers import DRIVERS, make_driver, run_episode
+from .drivers import DRIVERS, run_episode
 from .road import DEFAULT_MAP, available_maps, load_map, map_from_yaml
 from .world import Scenario, World
 

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import STYLES, WorldConfig
-from bimacppo_common.conventions import OUTCOMES, TASKS, wrap_angle
+from bimacppo_common.conventions import TASKS, wrap_angle
 
 from .geometry import box_corners, boxes_overlap
-from .road import ARMS, RoadMap, load_map
+from .road import RoadMap, load_map
 
 
 @dataclass(frozen=True)
