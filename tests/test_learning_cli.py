@@ -578,3 +578,45 @@ def test_a_fine_tune_may_add_observation_features_only_when_told(trained, tmp_pa
                        "--run-dir", str(back), "--fine-tune-observation"]) == 2
     line = _one_error_line(capsys.readouterr().err, "bimacppo-train")
     assert "leaves out the checkpoint's lanes features" in line and not back.exists()
+
+
+def test_a_fine_tune_can_start_its_lane_change_head_from_a_keep_prior(trained, tmp_path, capsys):
+    """--fine-tune-lane-prior P: the fine-tune's agent keeps the lane with probability P in every
+    state (left and right share the rest) while its other heads act as the source's do; the flag
+    needs --init-policy and a probability strictly between 0 and 1, refused on one line before
+    anything is written."""
+    import numpy as np
+    import torch
+
+    from bimacppo_learning.cli import _preflight, _train_parser
+    from bimacppo_learning.ppo_config import load_config
+    from bimacppo_learning.trainer import load_agent
+    from bimacppo_mpc import MPCConfig
+    from bimacppo_planner.decision import LANE_CHANGE_HEAD, EnvConfig
+
+    cfg, run, base = _fine_tune_args(trained)
+    ckpt = base[-1]
+    args = _train_parser().parse_args([*base, "--fine-tune-lane-prior", "0.9", "--run-dir", str(tmp_path / "p")])
+    pcfg, _ = load_config(cfg)
+    why, agent, _ = _preflight(args, EnvConfig.load(), pcfg, tmp_path / "p", MPCConfig.load())
+    assert why is None
+    source = load_agent(ckpt)
+    obs = torch.from_numpy(np.random.default_rng(0).normal(0.0, 3.0, size=(20, agent.obs_dim)).astype(np.float32))
+    with torch.no_grad():
+        tuned, orig = agent.dist(obs).log_probs, source.dist(obs).log_probs
+    probs = tuned[LANE_CHANGE_HEAD].exp().numpy()
+    assert np.allclose(probs, [[0.05, 0.9, 0.05]] * 20, atol=1e-6)
+    assert not np.allclose(orig[LANE_CHANGE_HEAD].exp().numpy(), probs, atol=1e-3)   # the source's head differs
+    for head in range(len(tuned)):
+        if head != LANE_CHANGE_HEAD:
+            assert torch.allclose(tuned[head], orig[head])
+    out = tmp_path / "run"
+    assert train_main([*base, "--fine-tune-lane-prior", "0.9", "--run-dir", str(out)]) == 0
+    assert "--fine-tune-lane-prior" in json.loads((out / "run.json").read_text())["argv"]
+    capsys.readouterr()
+    for bad in ("0", "1", "1.5", "nan"):
+        assert train_main([*base, "--fine-tune-lane-prior", bad, "--run-dir", str(tmp_path / "bad")]) == 2
+        assert "probability in (0, 1)" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert train_main(["--episodes", "2", "--fine-tune-lane-prior", "0.9", "--run-dir", str(tmp_path / "bad")]) == 2
+    assert "needs --init-policy" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert not (tmp_path / "bad").exists()

@@ -325,3 +325,38 @@ def test_an_agent_adopts_a_fine_tunes_config_but_not_another_network():
     with pytest.raises(ValueError, match=r"hidden_sizes \(\(256, 128\) -> \(64,\)\), activation"):
         src.adopt_config(dataclasses.replace(tuned, hidden_sizes=(64,), activation="relu"))
     assert src.cfg is tuned
+
+
+def test_a_head_prior_fixes_one_heads_odds_in_every_state_and_leaves_the_rest():
+    """ppo.set_head_prior: the head's logits no longer depend on the input and give exactly the
+    prior; the other heads' logits, the critic and the optimiser's moments of other rows are
+    untouched, the head's own moments restart at zero; bad priors are refused."""
+    import torch
+
+    from bimacppo_learning.ppo import PPO, set_head_prior
+    from bimacppo_learning.ppo_config import PPOConfig
+
+    agent = PPO(6, [5, 5, 3], PPOConfig(init_gain_policy=1.0), seed=2)
+    obs = torch.from_numpy(np.random.default_rng(1).normal(0.0, 2.0, size=(32, 6)).astype(np.float32))
+    loss = agent.actor(obs).pow(2).sum()            # one optimiser step gives every row moments
+    agent.actor_opt.zero_grad()
+    loss.backward()
+    agent.actor_opt.step()
+    with torch.no_grad():
+        before, value = agent.actor(obs).clone(), agent.critic(obs).clone()
+    out = agent.actor[-1]
+    moments = {k: v.clone() for k, v in agent.actor_opt.state[out.weight].items() if torch.is_tensor(v) and v.ndim}
+    set_head_prior(agent, 2, [0.1, 0.8, 0.1])
+    with torch.no_grad():
+        after = agent.actor(obs)
+        probs = agent.dist(obs).log_probs[2].exp()
+    assert torch.allclose(probs, torch.tensor([0.1, 0.8, 0.1]).expand(32, 3), atol=1e-6)
+    assert torch.equal(after[:, :10], before[:, :10])
+    assert torch.equal(agent.critic(obs).detach(), value)
+    for k, m in moments.items():
+        now = agent.actor_opt.state[out.weight][k]
+        assert torch.equal(now[:10], m[:10]) and not now[10:].any() and m[10:].any()
+    for head, probs_, match in ((3, [0.5, 0.5], "head"), (2, [0.5, 0.5], "3 actions"), (2, [0.5, 0.6, -0.1], "positive"),
+                                (2, [0.2, 0.2, 0.2], "sum to 1"), (0, [0.0, 0.25, 0.25, 0.25, 0.25], "positive")):
+        with pytest.raises(ValueError, match=match):
+            set_head_prior(agent, head, probs_)

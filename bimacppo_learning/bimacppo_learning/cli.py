@@ -66,6 +66,10 @@ def _train_parser() -> argparse.ArgumentParser:
                    help="with --init-policy: the fine-tune may turn on observation features the checkpoint "
                         "lacks (observation.junction, observation.lanes; every other observation key must "
                         "match); their input weights start at zero, so it starts from the checkpoint's behaviour")
+    p.add_argument("--fine-tune-lane-prior", type=float, default=None, metavar="P",
+                   help="with --init-policy: the lane-change head (A3) starts keeping the lane with "
+                        "probability P in every state, left and right (1 - P) / 2 each; its other "
+                        "weights are dropped (docs/method.md, variant 24); default: the source's head")
     p.add_argument("--mpc", choices=("fast", "ipopt"), default="fast", help="NMPC solver in the loop")
     p.add_argument("--mpc-config", type=Path, default=None,
                    help="YAML overlaying bimacppo_mpc/config/mpc.yaml (lists only what it changes, e.g. "
@@ -242,6 +246,15 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
                 why += " (--fine-tune-action lets a fine-tune change how actions decode)"
             if why:
                 return why, None, pcfg
+            if args.fine_tune_lane_prior is not None:
+                from bimacppo_planner.decision import LANE_CHANGE_HEAD
+
+                from .ppo import set_head_prior
+
+                keep = args.fine_tune_lane_prior
+                sides = env_cfg.action.lane_change
+                set_head_prior(agent, LANE_CHANGE_HEAD,
+                               [keep if side == 0 else (1.0 - keep) / (len(sides) - 1) for side in sides])
         path = latest
         if args.resume and latest is not None:
             d = load_checkpoint(latest)
@@ -288,6 +301,11 @@ def train_main(argv=None) -> int:
         return fail(prog, "--fine-tune-observation needs --init-policy (a resume keeps its run's observation)")
     if args.fine_tune_action and args.init_policy is None:
         return fail(prog, "--fine-tune-action needs --init-policy (a resume keeps its run's action decoding)")
+    if args.fine_tune_lane_prior is not None:
+        if args.init_policy is None:
+            return fail(prog, "--fine-tune-lane-prior needs --init-policy (it sets a fine-tune's starting A3 head)")
+        if not 0.0 < args.fine_tune_lane_prior < 1.0:
+            return fail(prog, f"--fine-tune-lane-prior must be a probability in (0, 1), got {args.fine_tune_lane_prior}")
     try:
         env_cfg = EnvConfig.load(args.env_config)
         mpc_cfg = MPCConfig.load(args.mpc_config)

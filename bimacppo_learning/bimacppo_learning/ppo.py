@@ -371,6 +371,39 @@ def widen_inputs(agent: PPO, columns: Sequence[int]) -> PPO:
     return new
 
 
+def set_head_prior(agent: PPO, head: int, probs: Sequence[float]) -> None:
+    """Make action head ``head`` of ``agent``'s actor choose with probabilities ``probs`` whatever
+    the observation, in place: its rows of the actor's output layer get zero weights and the
+    biases log(probs). The other heads and the critic are untouched.
+
+    Why: a fine-tune can hand a head a job its source never needed. The intersection policy's
+    lane-change head (A3) is near uniform, and under ``action.lane_change_from: chosen`` every
+    sampled left or right moves the car a whole lane, so at uniform odds the fine-tune's rollouts
+    change lanes at every other decision. A prior that keeps the lane in most decisions leaves
+    lane changes rare enough to be tried one at a time, and the fine-tune learns when to make
+    them from there."""
+    nvec = agent.nvec
+    if not 0 <= int(head) < len(nvec):
+        raise ValueError(f"head must be in 0..{len(nvec) - 1}, got {head}")
+    p = np.asarray(probs, dtype=np.float64)
+    if p.shape != (nvec[head],):
+        raise ValueError(f"head {head} has {nvec[head]} actions, got {len(p)} probabilities")
+    if not np.all(np.isfinite(p)) or np.any(p <= 0.0) or abs(p.sum() - 1.0) > 1e-9:
+        raise ValueError(f"probabilities must be positive and sum to 1, got {p.tolist()}")
+    out = agent.actor[-1]
+    start = int(sum(nvec[:head]))
+    rows = slice(start, start + int(nvec[head]))
+    with torch.no_grad():
+        out.weight[rows] = 0.0
+        out.bias[rows] = torch.as_tensor(np.log(p), dtype=out.bias.dtype)
+        # the optimiser's moments for these rows belonged to the old head: without this the
+        # first updates would keep moving it along its source's gradients
+        for param in (out.weight, out.bias):
+            for moment in agent.actor_opt.state.get(param, {}).values():
+                if torch.is_tensor(moment) and moment.shape == param.shape:
+                    moment[rows] = 0.0
+
+
 def check_state_shapes(name: str, expected: Mapping[str, torch.Tensor], got: Mapping) -> None:
     missing = sorted(set(expected) - set(got))
     extra = sorted(set(got) - set(expected))

@@ -129,6 +129,9 @@ class EnvConfig:
         return (self.action.n_waypoints, len(self.action.speeds), len(self.action.lane_change))
 
 
+#: where A3, the lane-change head, sits in an action (the order of EnvConfig.nvec: A1, A2, A3)
+LANE_CHANGE_HEAD = 2
+
 #: the lane features: same-direction lanes to the EV's left, then to its right
 LANE_FEATURES = 2
 
