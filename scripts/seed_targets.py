@@ -85,8 +85,8 @@ def main(argv=None) -> int:
         print(f"{prog}: error: not a run directory: {', '.join(missing)}", file=sys.stderr)
         return 2
     labels = list(args.label) + ["versus"] * 2
-    print(f"| run | set | validation N_sv = 3 L / S / R | validation N_sv = 0 | test N_sv = 3 L / S / R | "
-          f"test N_sv = 0 | targets met, validation | targets met, test |")
+    print("| run | set | validation N_sv = 3 L / S / R | validation N_sv = 0 | test N_sv = 3 L / S / R | "
+          "test N_sv = 0 | targets met, validation | targets met, test |")
     print("|---|---|---|---|---|---|---|---|")
     counts = []
     try:
