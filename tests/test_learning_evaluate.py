@@ -4,6 +4,7 @@ import csv
 import io
 import os
 import pickle
+import re
 from collections import Counter
 
 import numpy as np
@@ -293,7 +294,7 @@ def _wilson(k, n, z=1.959963984540054):
     return 100 * (centre - half), 100 * (centre + half)
 
 
-@pytest.mark.parametrize("k,n", [(95, 100), (100, 100), (0, 30), (487, 500)])
+@pytest.mark.parametrize("k,n", [(95, 100), (100, 100), (0, 30), (487, 500), (498, 500)])
 def test_success_interval_is_the_wilson_interval_and_reaches_the_tables(k, n):
     cell = ev.CellResult(1, 3, Counter(success=k, collision=n - k), [])
     lo, hi = cell.success_interval()
@@ -304,7 +305,10 @@ def test_success_interval_is_the_wilson_interval_and_reaches_the_tables(k, n):
     row = next(csv.DictReader(io.StringIO(ev.to_csv([cell]))))
     assert (float(row["success_ci_low"]), float(row["success_ci_high"])) == pytest.approx((lo, hi), abs=0.006)
     md = ev.to_markdown([cell])
-    assert f"| straight | {cell.pct('success'):.0f} [{lo:.1f}, {hi:.1f}] of {n} |" in md
+    assert f"| straight | {cell.pct('success'):.1f} [{lo:.1f}, {hi:.1f}] of {n} |" in md
+    # what the table shows lies inside the interval it shows (498 of 500 must not read as 100)
+    shown = re.search(r"\| straight \| ([0-9.]+) \[([0-9.]+), ([0-9.]+)\] of", md).groups()
+    assert float(shown[1]) <= float(shown[0]) <= float(shown[2])
 
 
 def test_a_wider_sample_narrows_the_interval_and_an_empty_cell_has_none():

@@ -498,7 +498,9 @@ def to_markdown(results: list[CellResult], title: str = "", notes: Iterable[str]
         if c.n == 0:
             return None
         lo, hi = c.success_interval()
-        return f"{c.pct('success'):.0f} [{lo:.1f}, {hi:.1f}] of {c.n}"
+        # the success to the interval's precision: rounded to a whole percent, 99.6 of 500 would
+        # read 100 beside an interval that ends below it
+        return f"{c.pct('success'):.1f} [{lo:.1f}, {hi:.1f}] of {c.n}"
 
     def comfort(c: CellResult) -> str | None:
         q = c.comfort
