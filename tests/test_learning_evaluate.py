@@ -266,7 +266,9 @@ def test_slow_svs_runs_the_overtaking_protocol_the_way_training_draws_it():
     j, n = TASKS.index("straight"), 4
     [cell] = ev.evaluate(shipped_policy_path(), "three_lane_straight", (3,), (j,), n, workers=1,
                          random_row=False, seed_set="validation", slow_svs=2, action_selection="argmax")
-    env = IntersectionEnv(map_id="three_lane_straight", config=env_config_of(policy))
+    # the controller evaluate() runs the file with: the NMPC config it records
+    env = IntersectionEnv(map_id="three_lane_straight", config=env_config_of(policy),
+                          mpc_config=ev.resolve_mpc_config(policy))
     hand, slowed = Counter(), []
     for k in range(n):
         seed = ev.eval_seed(j, 3, k, "validation")
