@@ -11,58 +11,44 @@ empty-road cell 100 %; then how many runs meet them on each seed set. A run miss
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
 from bimacppo_common.conventions import TASKS
+from bimacppo_learning.experiments import ExperimentError, read_eval_csv
 
 
-def read_cells(path: Path) -> dict[tuple[str, int], float]:
-    """(task, N_sv) -> success % of one evaluation CSV; ValueError naming the file and row when
-    a row is malformed."""
-    with path.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    out = {}
-    for k, row in enumerate(rows, 2):
-        try:
-            task, n_sv, success = row["task"], int(row["n_sv"]), float(row["success_pct"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{path}:{k}: malformed evaluation row ({type(exc).__name__}: {exc})") from None
-        if task not in TASKS or not 0.0 <= success <= 100.0:
-            raise ValueError(f"{path}:{k}: task {task!r} or success {success} out of range")
-        out[(task, n_sv)] = success
-    return out
+def read_cells(path: Path) -> dict[tuple[int, int], float]:
+    """(task index, N_sv) -> success % of one evaluation CSV (``experiments.read_eval_csv``, which
+    names the file and row of a malformed one)."""
+    return {cell: values[0] for cell, values in read_eval_csv(path).items()}
 
 
 def meets(cells: dict | None, threshold: float) -> bool:
     """Every task at N_sv = 3 at or above ``threshold`` and every task at N_sv = 0 at 100 %."""
     if cells is None:
         return False
-    busy = [cells.get((t, 3)) for t in TASKS]
-    empty = [cells.get((t, 0)) for t in TASKS]
-    return all(v is not None and v >= threshold for v in busy) and all(v is not None and v >= 100.0 for v in empty)
+    return all(cells.get((t, 3), -1.0) >= threshold and cells.get((t, 0), -1.0) >= 100.0
+               for t in range(len(TASKS)))
 
 
 def _fmt(cells: dict | None, n_sv: int) -> str:
     if cells is None:
         return "-"
-    return " / ".join("-" if cells.get((t, n_sv)) is None else f"{cells[(t, n_sv)]:.0f}" for t in TASKS)
+    return " / ".join("-" if (t, n_sv) not in cells else f"{cells[(t, n_sv)]:.0f}" for t in range(len(TASKS)))
 
 
 def table(label: str, runs: list[Path], val_name: str, test_name: str, threshold: float) -> tuple[list[str], int, int]:
     """Markdown rows for ``runs`` and the counts of runs meeting the targets on validation / test."""
     rows, n_val, n_test = [], 0, 0
     for run in runs:
-        sets = {}
-        for name in (val_name, test_name):
-            path = run / f"{name}.csv"
-            sets[name] = read_cells(path) if path.is_file() else None
-        v, t = sets[val_name], sets[test_name]
-        n_val += meets(v, threshold)
-        n_test += meets(t, threshold)
+        v, t = (read_cells(run / f"{name}.csv") if (run / f"{name}.csv").is_file() else None
+                for name in (val_name, test_name))
+        v_ok, t_ok = meets(v, threshold), meets(t, threshold)
+        n_val += v_ok
+        n_test += t_ok
         rows.append(f"| {run.name} | {label} | {_fmt(v, 3)} | {_fmt(v, 0)} | {_fmt(t, 3)} | {_fmt(t, 0)} | "
-                    f"{'yes' if meets(v, threshold) else 'no'} | {'yes' if meets(t, threshold) else 'no'} |")
+                    f"{'yes' if v_ok else 'no'} | {'yes' if t_ok else 'no'} |")
     return rows, n_val, n_test
 
 
@@ -95,7 +81,7 @@ def main(argv=None) -> int:
                 rows, n_val, n_test = table(label, sorted(runs), args.validation, args.test, args.threshold)
                 print("\n".join(rows))
                 counts.append((label, len(runs), n_val, n_test))
-    except (OSError, ValueError) as exc:
+    except ExperimentError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     print(f"\ntargets: >= {args.threshold:g} % in each N_sv = 3 cell and 100 % in each N_sv = 0 cell\n")
