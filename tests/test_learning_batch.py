@@ -331,6 +331,51 @@ def test_headway_shaping_prices_the_ticks_closing_on_the_lead_too_fast_to_stop(m
     assert kinds["priced"] > 0 and kinds["not"] > 0, kinds
 
 
+def test_idle_queue_gap_waives_the_idle_price_on_the_ticks_queued_behind_a_lead(monkeypatch):
+    """The same overtaking scenarios and actions with the idle price, with and without
+    ``idle_queue_gap``: the trajectories are the same, and the return with the gap is higher by
+    exactly the price of the ticks that began queued behind a lead (``queued_behind_lead``),
+    each ``|idle_clear| * idle_share(v) / decision_every``. Driving at A2 = 4 m/s in the lane, below
+    the price's go speed, meets both kinds of tick (queued behind a slow SV, and not yet)."""
+    import bimacppo_learning.batch as batch_mod
+    from bimacppo_planner.decision import idle_share
+
+    base = EXT.to_dict()
+    price, gap = -0.3, 20.0
+    reward = {**base["reward"], "idle_clear": price, "go_speed": 8.0}
+    plain = EnvConfig.from_dict({**base, "reward": reward})
+    waived = EnvConfig.from_dict({**base, "reward": {**reward, "idle_queue_gap": gap}})
+    every = waived.action.decision_every
+    real = batch_mod.queued_behind_lead
+    kinds = {"queued": 0, "not": 0}
+    for k in range(4):
+        out = []
+        for cfg in (waived, plain):
+            log = []
+
+            def recorded(world, g):
+                q = real(world, g)
+                log.append((q, world.ego_tuple()[2]))
+                return q
+            monkeypatch.setattr(batch_mod, "queued_behind_lead", recorded)
+            b = IntersectionBatch(1, map_id="three_lane_straight", config=cfg, slow_svs=2)
+            b.reset(0, seed=k, options={"n_sv": 3, "task": "straight", "n_slow": 2})
+            for _ in range(60):
+                _, _, te, tr, _ = b.step(np.array([[4, 2, 1]]))
+                if te[0] or tr[0]:
+                    break
+            out.append((b.returns[0], b.worlds[0].ego_tuple(), log))
+        (r1, ego1, log1), (r2, ego2, log2) = out
+        assert ego1 == ego2
+        assert log2 == []                       # without the gap the test is never asked
+        waived_price = sum(-price * idle_share(waived.reward, v) / every for q, v in log1 if q)
+        kinds["queued"] += sum(1 for q, v in log1 if q and idle_share(waived.reward, v) > 0)
+        kinds["not"] += sum(1 for q, _ in log1 if not q)
+        assert r1 - r2 == pytest.approx(waived_price, abs=1e-9)
+    monkeypatch.setattr(batch_mod, "queued_behind_lead", real)
+    assert kinds["queued"] > 0 and kinds["not"] > 0, kinds
+
+
 def test_free_lane_term_pays_the_change_in_lanes_to_the_free_lane(monkeypatch):
     """The same overtaking scenarios and actions (a right change held, then "keep") with and
     without the lane-progress term: the trajectories are the same, and the return differs by

@@ -1,11 +1,12 @@
 """The scripted drivers' threat test and junction distance: the event the threat-entry shaping
 term pays on must separate the "yield" rule (enters only a clear junction) from "go"."""
-from bimacppo_sim import Scenario, World, load_map
-from bimacppo_sim.config import DriverConfig
 import math
 
-from bimacppo_sim.drivers import (closing_on_lead, junction_distance, junction_threatened, lanes_to_free_lane, make_driver,
-                                  stop_line_distance)
+import pytest
+from bimacppo_sim import Scenario, World, load_map
+from bimacppo_sim.config import DriverConfig
+from bimacppo_sim.drivers import (closing_on_lead, junction_distance, junction_threatened, lanes_to_free_lane, lead_vehicle,
+                                  make_driver, queued_behind_lead, stop_line_distance)
 
 
 def _threatened_entries(driver: str, episodes: int) -> tuple[int, int]:
@@ -81,6 +82,35 @@ def test_lanes_to_free_lane_counts_to_the_nearest_lane_no_slow_sv_blocks_ahead()
     junction.reset(Scenario(n_sv=0, task="straight", seed=1))
     junction._ev[:2] = [0.0, 0.0]
     assert lanes_to_free_lane(junction, 4.0, 60.0) is None
+
+
+def test_queued_behind_lead_tests_the_bumper_gap_to_the_sv_ahead_in_the_lane():
+    """The gap is bumper to bumper (centre distance less one car length), to the nearest active
+    SV ahead within half a lane of the EV's heading line, whatever the speeds; ``lead_vehicle``
+    reports that gap and the lead's speed along the EV's heading, or None."""
+    road = load_map("three_lane_straight")
+    w = World(road)
+    w.reset(Scenario(n_sv=2, task="straight", seed=3))
+    near, far = w.svs[0], w.svs[1]
+    length = w.cfg.vehicle.length
+    w._ev[:] = [0.0, 0.0, 0.0, math.pi / 2]
+    far.x, far.y, far.v, far.psi, far.active = 0.0, 50.0, 5.0, math.pi / 2, True
+
+    def place(ahead, v_lead=1.0, side=0.0, active=True, psi=math.pi / 2):
+        near.x, near.y, near.v, near.psi, near.active = side, ahead, v_lead, psi, active
+        return queued_behind_lead(w, 20.0)
+
+    assert place(20.0 + length - 0.1) and not place(20.0 + length + 0.1)
+    assert place(8.0, v_lead=9.0)                                   # speed does not matter
+    assert not place(8.0, side=road.lane_width)                     # one lane over
+    assert not place(-8.0)                                          # behind
+    assert not place(8.0, active=False)
+    place(8.0, v_lead=2.0, psi=math.pi / 2 + math.pi / 3)           # heading 60 degrees off the EV's
+    gap, v_along = lead_vehicle(w)
+    assert gap == pytest.approx(8.0 - length) and v_along == pytest.approx(1.0)
+    far.active = False
+    place(8.0, active=False)
+    assert lead_vehicle(w) is None
 
 
 def test_closing_on_lead_tests_the_stop_behind_the_sv_ahead_in_the_lane():

@@ -33,7 +33,8 @@ from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, idle_share, observe, step_reward
 from bimacppo_sim import Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
-from bimacppo_sim.drivers import closing_on_lead, junction_distance, junction_threatened, lanes_to_free_lane
+from bimacppo_sim.drivers import (closing_on_lead, junction_distance, junction_threatened, lanes_to_free_lane,
+                                  queued_behind_lead)
 
 RESET_OPTIONS = ("n_sv", "task", "scenario_seed", "n_slow")
 SEED_HIGH = 2 ** 31 - 1
@@ -224,7 +225,8 @@ class IntersectionBatch:
                 threatened = False
                 if not self.crossed[i]:
                     threatened = junction_threatened(self.worlds[i], tcfg)
-                if rcfg.idle_clear != 0.0 and not threatened:
+                if rcfg.idle_clear != 0.0 and not threatened and not (
+                        rcfg.idle_queue_gap is not None and queued_behind_lead(self.worlds[i], rcfg.idle_queue_gap)):
                     shaping[i] += rcfg.idle_clear * idle_share(rcfg, X0[i, 2]) / acfg.decision_every
                 if rcfg.threat_speed != 0.0 and threatened and X0[i, 2] > rcfg.idle_speed and \
                         X0[i, 2] ** 2 > 2.0 * tcfg.stop_decel * max(junction_distance(self.worlds[i]), 0.0):

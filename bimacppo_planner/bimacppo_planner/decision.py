@@ -91,6 +91,7 @@ class RewardConfig:
     free_lane: float = setting(hi=0.0, absent=0.0)
     idle_speed: float = setting(lo=0.0)
     go_speed: float = setting(lo=0.0)
+    idle_queue_gap: float | None = setting(lo=0.0, lo_open=True, absent=None)   # m; None: off, see env.yaml
     lane_change: float
     step: float
 

@@ -36,17 +36,14 @@ def junction_threatened(world, cfg: DriverConfig) -> bool:
     return False
 
 
-def closing_on_lead(world, cfg: DriverConfig) -> bool:
-    """Whether the EV closes on the SV ahead in its lane too fast to stop behind it: the nearest
-    active SV ahead of the EV's front (in the EV's frame) within half a lane width of its heading
-    line, whose speed along that heading is below the EV's by more than braking at ``stop_decel``
-    removes over the bumper-to-bumper gap less ``stop_margin``: v² − v_lead² > 2 b (gap − margin).
-    The same kind of test as the yield rule's stop before the junction, applied to a lead vehicle.
-    It reads the SVs' true states (training rewards only, never the policy's observation)."""
-    x, y, v, psi = world.ego_tuple()
+def lead_vehicle(world) -> tuple[float, float] | None:
+    """The SV ahead in the EV's lane: (bumper-to-bumper gap, its speed along the EV's heading,
+    0 or more) of the nearest active SV ahead of the EV (in the EV's frame) within half a lane
+    width of its heading line; None when there is none. It reads the SVs' true states (training
+    rewards only, never the policy's observation)."""
+    x, y, _, psi = world.ego_tuple()
     c, s = math.cos(psi), math.sin(psi)
     half = 0.5 * world.road.lane_width
-    length = world.cfg.vehicle.length
     lead_dx, lead_v = math.inf, 0.0
     for st, active in zip(world.sv_states(), world.sv_active):
         if not active:
@@ -55,10 +52,31 @@ def closing_on_lead(world, cfg: DriverConfig) -> bool:
         dy = -(st[0] - x) * s + (st[1] - y) * c
         if 0.0 < dx < lead_dx and abs(dy) < half:
             lead_dx, lead_v = dx, max(st[2] * math.cos(st[3] - psi), 0.0)
-    if not math.isfinite(lead_dx) or v <= lead_v:
+    if not math.isfinite(lead_dx):
+        return None
+    return max(lead_dx - world.cfg.vehicle.length, 0.0), lead_v
+
+
+def closing_on_lead(world, cfg: DriverConfig) -> bool:
+    """Whether the EV closes on the SV ahead in its lane (``lead_vehicle``) too fast to stop
+    behind it: its speed along the EV's heading is below the EV's by more than braking at
+    ``stop_decel`` removes over the bumper-to-bumper gap less ``stop_margin``:
+    v² − v_lead² > 2 b (gap − margin). The same kind of test as the yield rule's stop before the
+    junction, applied to a lead vehicle. Privileged, like ``lead_vehicle``."""
+    lead = lead_vehicle(world)
+    v = world.ego_tuple()[2]
+    if lead is None or v <= lead[1]:
         return False
-    gap = max(lead_dx - length - cfg.stop_margin, 0.0)
-    return v * v - lead_v * lead_v > 2.0 * cfg.stop_decel * gap
+    gap = max(lead[0] - cfg.stop_margin, 0.0)
+    return v * v - lead[1] * lead[1] > 2.0 * cfg.stop_decel * gap
+
+
+def queued_behind_lead(world, gap: float) -> bool:
+    """Whether an SV ahead in the EV's lane (``lead_vehicle``) is within ``gap`` metres of the
+    EV's front bumper: an EV slow there is queueing behind it, not idling on a clear road.
+    Privileged, like ``lead_vehicle``."""
+    lead = lead_vehicle(world)
+    return lead is not None and lead[0] <= gap
 
 
 def blocked_lanes(world, slow_speed: float, reach: float) -> set[int] | None:
