@@ -10,7 +10,10 @@ from where the EV drives (`ev` or `chosen`, the paper's Fig. 8). Given a policy,
 runs it on the same scenarios and splits its outcomes by that distance (off road apart from
 collisions with SVs), which says whether it passes slow SVs or only follows free lanes, and
 again by whether the EV starts in a lane at the road's edge, with how often A3 asked for a lane
-that is not there (a side without an SV is a free lane or no lane at all).
+that is not there (a side without an SV is a free lane or no lane at all). Its collisions with SVs
+are split by where the SV was at the collision (`collision_kind`): ahead in the EV's lane (a
+rear-end collision, with a slow SV or a normal one) or elsewhere (beside or behind: a lane change
+into it, or hit from behind), with the EV's speed.
 
     python scripts/overtaking_lanes.py --seed-set validation --episodes 100
     python scripts/overtaking_lanes.py runs/overtake/policy.pt --seed-set validation --action median
@@ -62,12 +65,30 @@ def at_edge(world: World) -> bool:
     return 0 in lanes_beside(world.road, x, y, psi)
 
 
+KINDS = ("rear-end, slow SV", "rear-end, normal SV", "beside or behind")
+
+
+def collision_kind(world: World, sv_id: str) -> str:
+    """Where the SV the EV collided with was, in the EV's frame at the collision: ahead of the
+    EV's centre within half a lane width of its heading line ("rear-end", split by whether the SV
+    is one of the scenario's slow ones), or anywhere else."""
+    import math
+    sv = next(s for s in world.svs if s.id == sv_id)
+    x, y, _, psi = world.ego_tuple()
+    dx = (sv.x - x) * math.cos(psi) + (sv.y - y) * math.sin(psi)
+    dy = -(sv.x - x) * math.sin(psi) + (sv.y - y) * math.cos(psi)
+    if dx > 0.0 and abs(dy) < 0.5 * world.road.lane_width:
+        return KINDS[0] if sv.slow else KINDS[1]
+    return KINDS[2]
+
+
 def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, episodes_out: list | None = None) -> dict:
     """{distance: Counter of failure_causes.CAUSES} of the driver ``act(env, obs) -> action`` on the
     protocol's scenarios, run in ``env`` (an IntersectionEnv on the overtaking map). With
     ``episodes_out`` one record per scenario is appended to it: distance, whether the EV starts at
-    the road's edge (``at_edge``), outcome, and how many decisions asked A3 for a lane that is not
-    there (the side ``lanes_beside`` counts none on, on the map the decoding walks)."""
+    the road's edge (``at_edge``), outcome, how many decisions asked A3 for a lane that is not
+    there (the side ``lanes_beside`` counts none on, on the map the decoding walks) and, for a
+    collision with an SV, its ``collision_kind`` and the EV's speed then."""
     out: dict = {}
     sides = env.cfg.action.lane_change
     for k in range(episodes):
@@ -84,9 +105,14 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
                 missing += lanes_beside(env.world.road, x, y, psi)[0 if side < 0 else 1] == 0
             obs, _, term, trunc, info = env.step(a)
             done = term or trunc
-        out.setdefault(d, Counter())[cause_of(info)] += 1
+        cause = cause_of(info)
+        out.setdefault(d, Counter())[cause] += 1
         if episodes_out is not None:
-            episodes_out.append({"distance": d, "edge": edge, "outcome": cause_of(info), "a3_no_lane": missing})
+            rec = {"distance": d, "edge": edge, "outcome": cause, "a3_no_lane": missing}
+            if cause == "sv collision":
+                rec["kind"] = collision_kind(env.world, info["collided_with"])
+                rec["ev_speed"] = float(env.world.ego_tuple()[2])
+            episodes_out.append(rec)
     return out
 
 
@@ -121,6 +147,18 @@ def by_start_lane_markdown(records: list) -> str:
                 lines.append(f"| {d} | {'edge' if edge else 'middle'} | {len(sel)} | "
                              f"{sum(r['outcome'] == 'success' for r in sel)} | "
                              f"{sum(r['a3_no_lane'] for r in sel) / len(sel):.1f} |")
+    return "\n".join(lines)
+
+
+def collisions_markdown(records: list) -> str:
+    """The collisions with SVs by distance and ``collision_kind``: count, and the EV's speed range."""
+    lines = ["| distance | " + " | ".join(KINDS) + " |", "|---|" + "---|" * len(KINDS)]
+    for d in sorted({r["distance"] for r in records}):
+        cells = []
+        for kind in KINDS:
+            v = [r["ev_speed"] for r in records if r["distance"] == d and r.get("kind") == kind]
+            cells.append(f"{len(v)} ({min(v):.1f}-{max(v):.1f} m/s)" if v else "0")
+        lines.append(f"| {d} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -162,6 +200,8 @@ def main(argv=None) -> int:
         print(by_distance_markdown(by))
         print("\nby start lane (edge: a lane with no lane beside it on one side)\n")
         print(by_start_lane_markdown(records))
+        print("\ncollisions with SVs by where the SV was (EV speed at the collision)\n")
+        print(collisions_markdown(records))
     return 0
 
 

@@ -98,3 +98,45 @@ def test_per_scenario_records_count_a3_asks_for_a_lane_that_is_not_there(capsys)
     assert {r["outcome"] for r in records} <= set(script.CAUSES)
     table = script.by_start_lane_markdown(records)
     assert table.count("\n") >= 2 and ("edge" in table or "middle" in table)
+
+
+def test_collision_kind_tells_rear_end_collisions_from_the_rest():
+    """Ahead of the EV within half a lane of its heading line is a rear-end collision, split by
+    whether the SV is slow; beside or behind is the rest."""
+    import math
+
+    from bimacppo_sim import Scenario, World, load_map
+
+    script = load_script("overtaking_lanes")
+    w = World(load_map(script.MAP))
+    w.reset(Scenario(n_sv=3, task="straight", seed=2, n_slow=1))
+    w._ev[:] = [0.0, 0.0, 5.0, math.pi / 2]
+    sv = w.svs[0]
+    half = 0.5 * w.road.lane_width
+    for x, y, slow, kind in ((0.3 * half, 4.0, True, script.KINDS[0]), (-0.3 * half, 4.0, False, script.KINDS[1]),
+                             (1.2 * half, 4.0, True, script.KINDS[2]), (0.0, -4.0, True, script.KINDS[2])):
+        sv.x, sv.y, sv.slow = x, y, slow
+        assert script.collision_kind(w, sv.id) == kind, (x, y, slow)
+
+
+def test_a_lane_keeper_rear_ends_the_slow_svs_that_block_its_lane():
+    """A driver that keeps its lane at 8 m/s: every collision with an SV is recorded with its kind
+    and the EV's speed, at least one is a rear-end collision with a slow SV, and the table lists
+    each distance."""
+    import numpy as np
+    from bimacppo_learning.env import IntersectionEnv
+    from bimacppo_planner.decision import EnvConfig
+
+    script = load_script("overtaking_lanes")
+    env = IntersectionEnv(map_id=script.MAP, config=EnvConfig.load())
+    records: list = []
+    try:
+        script.run_by_distance(env, lambda env, obs: np.array([4, 4, 1]), "validation", 12, episodes_out=records)
+    finally:
+        env.close()
+    hits = [r for r in records if r["outcome"] == "sv collision"]
+    assert hits and all(r["kind"] in script.KINDS and r["ev_speed"] >= 0.0 for r in hits)
+    assert all("kind" not in r for r in records if r["outcome"] != "sv collision")
+    assert any(r["kind"] == script.KINDS[0] for r in hits)
+    table = script.collisions_markdown(records)
+    assert len(table.splitlines()) == 2 + len({r["distance"] for r in records})
