@@ -895,3 +895,46 @@ def test_reach_time_lets_a2_set_the_speed_on_the_empty_road():
             end[rt, env.cfg.action.speeds[a2]] = env.world._ev[2]
     assert all(end[None, v] > 9.0 for v in (2.0, 4.0, 6.0)), end
     assert all(abs(end[1.5, v] - v) < 1.5 for v in (2.0, 4.0, 6.0)), end
+
+
+def test_lead_features_give_each_lanes_nearest_sv_ahead_and_behind_on_the_planners_map():
+    """observation.leads appends, for the lanes left of the EV, its own and right of it: the
+    distance to the nearest same-direction SV ahead in the lane (clip when none), the EV's
+    closing speed on it, the distance to the nearest one behind; a missing lane reads zeros.
+    SVs are assigned to lanes across the EV's heading, an SV facing the other way is ignored, and
+    the features come after every other group."""
+    from bimacppo_planner.decision import LEAD_FEATURES, lane_leads
+    from bimacppo_sim import load_map
+
+    road = load_map("three_lane_straight")
+    north = math.pi / 2
+    W = road.lane_width
+    left, mid, right = [-road.half_road + (k + 0.5) * W for k in range(road.n_lanes)]
+    ego = np.array([mid + 0.3, -20.0, 6.0, north])             # a little right of the middle lane's centre
+    svs = np.array([[mid, -8.0, 2.0, north],                    # own lane, 12 m ahead
+                    [mid, 10.0, 1.0, north],                    # own lane, farther ahead: not the nearest
+                    [left, -19.0, 5.0, north],                  # left lane, beside the EV, 1 m ahead
+                    [left, -45.0, 7.0, north],                  # left lane, 25 m behind
+                    [right, -5.0, 4.0, -north],                 # right lane, facing the other way: ignored
+                    [right, -30.0, 8.0, north]])                # right lane, 10 m behind
+    f = lane_leads(road, ego, svs, 60.0)
+    assert f.shape == (LEAD_FEATURES,)
+    np.testing.assert_allclose(f, [1.0, 1.0, 25.0,  12.0, 4.0, 60.0,  60.0, 0.0, 10.0], atol=1e-9)
+    edge = lane_leads(road, np.array([left, -20.0, 6.0, north]), svs[:1], 60.0)
+    np.testing.assert_allclose(edge, [0.0, 0.0, 0.0,  60.0, 0.0, 60.0,  12.0, 4.0, 60.0])   # the middle lane is its right
+    assert np.allclose(lane_leads(road, ego, svs, 5.0)[[3, 5]], [5.0, 5.0])      # clipped
+    dual = load_map("dual_lane_4way")
+    inside = lane_leads(dual, np.array([0.0, 0.0, 3.0, north]), np.array([[0.0, 5.0, 1.0, north]]), 60.0)
+    np.testing.assert_allclose(inside, [0.0, 0.0, 0.0,  5.0, 2.0, 60.0,  0.0, 0.0, 0.0], atol=1e-9)   # junction: own lane only
+    cfg = ObservationConfig(max_sv=3, sv_clip=60.0, sv_frame="ego", pad_value=(60.0, 60.0, 0.0, 0.0),
+                            junction=True, tta_cap=8.0, lanes=True, leads=True)
+    assert EnvConfig.load(overrides={"observation": {"junction": True, "lanes": True, "leads": True}}).obs_dim \
+        == 16 + 4 + 2 + LEAD_FEATURES
+    goal = np.array([mid, 80.0, north])
+    o = observe(cfg, ego, goal, svs, road)
+    without = observe(dataclasses_replace(cfg, leads=False), ego, goal, svs, road)
+    assert o.shape == (22 + LEAD_FEATURES,) and np.array_equal(o[:22], without)
+    np.testing.assert_allclose(o[22:], f, rtol=1e-6)
+    assert np.array_equal(observe(dataclasses_replace(cfg, lanes=False), ego, goal, svs, road)[20:], o[22:])
+    with pytest.raises(ValueError, match="road map"):
+        observe(dataclasses_replace(cfg, junction=False, lanes=False), ego, goal, svs)

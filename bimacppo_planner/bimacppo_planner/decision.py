@@ -37,6 +37,7 @@ class ObservationConfig:
     junction: bool = setting(absent=False)   # append the junction features (extension, docs/method.md); false: eq. (18)-(20) only
     tta_cap: float = setting(lo=0.0, lo_open=True)   # s; the junction features' time-to-box ceiling ("not coming")
     lanes: bool = setting(absent=False)      # append the lane features (extension, docs/method.md)
+    leads: bool = setting(absent=False)      # append the lead features (extension, docs/method.md)
 
 
 #: what the chord limit tests: the chord's distance from the route points, or that a corridor
@@ -135,6 +136,10 @@ LANE_CHANGE_HEAD = 2
 
 #: the lane features: same-direction lanes to the EV's left, then to its right
 LANE_FEATURES = 2
+#: the lanes the lead features describe, counted from the EV's lane: left, its own, right
+LEAD_LANES = (-1, 0, 1)
+#: per lane: gap to the nearest SV ahead, the EV's closing speed on it, gap to the nearest SV behind
+LEAD_FEATURES = 3 * len(LEAD_LANES)
 
 
 def observation_blocks(cfg: ObservationConfig) -> tuple[tuple[str, int], ...]:
@@ -147,6 +152,8 @@ def observation_blocks(cfg: ObservationConfig) -> tuple[tuple[str, int], ...]:
         blocks.append(("junction", 1 + cfg.max_sv))
     if cfg.lanes:
         blocks.append(("lanes", LANE_FEATURES))
+    if cfg.leads:
+        blocks.append(("leads", LEAD_FEATURES))
     return tuple(blocks)
 
 
@@ -156,6 +163,41 @@ def lanes_beside(road, x: float, y: float, psi: float) -> tuple[int, int]:
     junction, off the road or against the lane's direction."""
     lanes = lanes_across(road.lateral_point, x, y, psi)
     return sum(1 for n in lanes if n < 0), sum(1 for n in lanes if n > 0)
+
+
+def lane_leads(road, ego, svs: np.ndarray, clip: float) -> np.ndarray:
+    """The lead features: for each lane of ``LEAD_LANES`` (left of the EV's, its own, right of
+    it, found on the planner's map by the walk A3 decodes with, ``lanes_across``), the distance
+    along the EV's heading to the nearest same-direction SV ahead in that lane (centre to centre,
+    at most ``clip``; ``clip`` when there is none), the EV's speed less that SV's speed along the
+    EV's heading (0 when there is none), and the distance to the nearest such SV behind (at most
+    ``clip``). An SV is in a lane when its offset across the EV's heading lies within half a lane
+    width of the lane's centre, the EV's own lane centred on the EV. A lane that is not there (the road's edge, inside a junction,
+    against the lane's direction) reads 0, 0, 0: no room ahead or behind."""
+    x, y, v, psi = (float(ego[0]), float(ego[1]), float(ego[2]), float(ego[3]))
+    lanes = lanes_across(road.lateral_point, x, y, psi)
+    half = 0.5 * float(road.lane_width)
+    c, s = math.cos(psi), math.sin(psi)
+    out = np.zeros(LEAD_FEATURES, dtype=np.float64)
+    for k, n in enumerate(LEAD_LANES):
+        if n not in lanes:
+            continue
+        offset = lanes[n][3] if n != 0 else 0.0
+        ahead, closing, behind = clip, 0.0, clip
+        for sx, sy, sv, spsi in svs:
+            along = math.cos(float(spsi) - psi)
+            if along <= 0.0:
+                continue
+            dx = c * (sx - x) + s * (sy - y)
+            dy = -s * (sx - x) + c * (sy - y)
+            if abs(dy - offset) >= half:
+                continue
+            if 0.0 <= dx < ahead:
+                ahead, closing = dx, v - float(sv) * along
+            elif dx < 0.0 and -dx < behind:
+                behind = -dx
+        out[3 * k:3 * k + 3] = (ahead, closing, behind)
+    return out
 
 
 def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.ndarray, road=None) -> np.ndarray:
@@ -176,6 +218,10 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
     Lane features (an extension, docs/method.md): the same-direction lanes to the EV's left and
     to its right (``lanes_beside``), from the planner's map. Without them a side with no SV looks
     the same whether it is a free lane or no lane at all, which is the choice A3 makes.
+
+    Lead features (an extension, docs/method.md): ``lane_leads`` of all observed SVs (not only
+    the N_sv^max nearest), clipped at ``sv_clip``. The SV rows say where each SV is; these say
+    which lane it blocks, the question behind following, passing and a lane change's gap.
     """
     x, y, v, psi = (float(ego[0]), float(ego[1]), float(ego[2]), float(ego[3]))
     n_base = 4 * (1 + cfg.max_sv)
@@ -185,6 +231,7 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
     out[2] = v
     out[3] = wrap_angle(psi - float(goal[2]))
     svs = np.asarray(svs, dtype=np.float64).reshape(-1, 4)
+    all_svs = svs
     if cfg.sv_order == "distance" and len(svs) > 1:
         order = np.argsort(np.hypot(svs[:, 0] - x, svs[:, 1] - y), kind="stable")
         svs = svs[order]
@@ -223,7 +270,12 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
         if road is None:
             raise ValueError("observation.lanes needs the road map (observe(..., road=...))")
         left, right = lanes_beside(road, x, y, psi)
-        out[-LANE_FEATURES:] = (left, right)
+        at = n_base + (1 + cfg.max_sv if cfg.junction else 0)
+        out[at:at + LANE_FEATURES] = (left, right)
+    if cfg.leads:
+        if road is None:
+            raise ValueError("observation.leads needs the road map (observe(..., road=...))")
+        out[-LEAD_FEATURES:] = lane_leads(road, ego, all_svs, cfg.sv_clip)
     return out
 
 
