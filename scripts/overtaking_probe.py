@@ -14,8 +14,15 @@ position against its speed and a far waypoint pulls the EV to about 10 m/s whate
 (`action.reach_time`, variant 18). Outcomes are split by how far the free lane lies
 (scripts/overtaking_lanes.py).
 
+``--policy P --probe-heads lane`` (or ``speed``) runs a policy with the probe deciding one part of
+each action: A3 (``lane``: when and where to change lanes) or A1 and A2 (``speed``: where to aim
+and how fast), the policy the rest. It says which part of the task a fine-tune has not learned.
+The policy must decode lane changes from the chosen lane (`lane_change_from: chosen`), as the
+probe does.
+
     python scripts/overtaking_probe.py --seed-set validation --episodes 100
     python scripts/overtaking_probe.py --seed-set validation --reach-time 1.5
+    python scripts/overtaking_probe.py --policy runs/overtake/policy.pt --probe-heads lane
 """
 from __future__ import annotations
 
@@ -29,6 +36,7 @@ import numpy as np
 from bimacppo_learning.env import IntersectionEnv
 from bimacppo_learning.evaluate import SEED_SETS
 from bimacppo_planner.decision import EnvConfig
+from bimacppo_planner.policy import ACTION_SELECTIONS
 from bimacppo_sim.drivers import blocked_lanes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -88,17 +96,69 @@ def run(seed_set: str, episodes: int, slow_max: int = 2, reach_time: float | Non
     return run_by_distance(IntersectionEnv(MAP, config=cfg), lambda env, obs: act(env), seed_set, episodes, slow_max)
 
 
+PROBE_HEADS = {"lane": (2,), "speed": (0, 1)}   # the action entries the probe decides
+
+
+def run_with_policy(policy, heads: str, seed_set: str, episodes: int, slow_max: int = 2,
+                    action: str | None = None, env_config=None) -> dict:
+    """Outcomes by distance of ``policy`` (a file, as ``bimacppo-evaluate`` takes it, or an
+    object with act/predict, run in ``env_config``) with the probe deciding the action entries of
+    ``heads`` (a key of PROBE_HEADS), in the env and with the NMPC the policy records. ValueError
+    when the policy does not decode lane changes from the chosen lane."""
+    from bimacppo_learning.evaluate import (as_actor, check_action, default_selection, resolve_mpc_config,
+                                            resolve_policy)
+    from bimacppo_planner.policy import with_selection
+
+    spec, loaded, cfg = resolve_policy(policy, env_config)
+    if cfg.action.lane_change_from != "chosen":
+        what = policy if isinstance(policy, (str, Path)) else type(policy).__name__
+        raise ValueError(f"{what}: decodes lane changes from the {cfg.action.lane_change_from!r} lane; "
+                         "the probe keeps the chosen one (action.lane_change_from: chosen)")
+    actor = as_actor(with_selection(loaded, action or default_selection(spec, loaded), 0))
+    env = IntersectionEnv(MAP, config=cfg, mpc_config=resolve_mpc_config(loaded, None))
+    nvec = tuple(int(n) for n in env.cfg.nvec)
+    idx = list(PROBE_HEADS[heads])
+
+    def mixed(env, obs):
+        a = np.array(check_action(actor(obs), nvec))
+        a[idx] = act(env)[idx]
+        return a
+    try:
+        return run_by_distance(env, mixed, seed_set, episodes, slow_max)
+    finally:
+        env.close()
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seed-set", choices=sorted(SEED_SETS), default="validation")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--reach-time", type=float, default=None,
                    help="decode with action.reach_time = this (s) and aim at the farthest waypoint (default: off)")
+    p.add_argument("--policy", default=None, help="run this policy with the probe deciding --probe-heads")
+    p.add_argument("--probe-heads", choices=sorted(PROBE_HEADS), default=None,
+                   help="with --policy: the part of each action the probe decides (lane: A3; speed: A1 and A2)")
+    p.add_argument("--action", choices=ACTION_SELECTIONS, default=None,
+                   help="with --policy: how it picks each head's action (default: the way its file records)")
     args = p.parse_args(argv)
+    if (args.policy is None) != (args.probe_heads is None):
+        p.error("--policy and --probe-heads go together")
+    if args.policy is not None and args.reach_time is not None:
+        p.error("--reach-time applies to the probe alone; a policy decodes as its file records")
     if not 1 <= args.episodes <= 1000:
         p.error(f"--episodes must be in 1..1000, got {args.episodes}")
     if args.reach_time is not None and not (math.isfinite(args.reach_time) and args.reach_time > 0.0):
         p.error(f"--reach-time must be a positive number of seconds, got {args.reach_time}")
+    if args.policy is not None:
+        try:
+            by = run_with_policy(args.policy, args.probe_heads, args.seed_set, args.episodes, action=args.action)
+        except (ValueError, OSError) as exc:
+            p.error(str(exc))
+        part = "A3" if args.probe_heads == "lane" else "A1 and A2"
+        print(f"{args.policy} with the probe deciding {part}, {args.seed_set} seeds, {args.episodes} scenarios: "
+              "outcomes by distance\n")
+        print(by_distance_markdown(by))
+        return 0
     by = run(args.seed_set, args.episodes, reach_time=args.reach_time)
     how = "A1 by its speed" if args.reach_time is None else f"action.reach_time {args.reach_time:g} s"
     print(f"scripted overtaking probe ({how}), {args.seed_set} seeds, {args.episodes} scenarios: outcomes by distance\n")

@@ -140,3 +140,37 @@ def test_a_lane_keeper_rear_ends_the_slow_svs_that_block_its_lane():
     assert any(r["kind"] == script.KINDS[0] for r in hits)
     table = script.collisions_markdown(records)
     assert len(table.splitlines()) == 2 + len({r["distance"] for r in records})
+
+
+def test_the_probe_can_decide_one_part_of_a_policys_actions(capsys):
+    """--policy with --probe-heads: a driver that keeps its lane at 8 m/s rear-ends slow SVs on its
+    own; with the probe's A3 it changes lanes and does better where its lane is blocked, with the
+    probe's A1 and A2 it stops behind them instead (no collision where it starts blocked). Outcomes
+    add up; a policy that does not decode from the chosen lane, and half the pair, are refused."""
+    import numpy as np
+    from bimacppo_planner.decision import EnvConfig
+
+    probe = load_script("overtaking_probe")
+    cfg = EnvConfig.load(probe.CONFIG)
+
+    class KeepLane:
+        def act(self, obs):
+            return np.array([4, 4, 1])
+    n = 12
+    alone = load_script("overtaking_lanes").run_by_distance(
+        probe.IntersectionEnv(probe.MAP, config=cfg), lambda env, obs: np.array([4, 4, 1]), "validation", n)
+    lane = probe.run_with_policy(KeepLane(), "lane", "validation", n, env_config=cfg)
+    speed = probe.run_with_policy(KeepLane(), "speed", "validation", n, env_config=cfg)
+    for by in (alone, lane, speed):
+        assert sum(sum(c.values()) for c in by.values()) == n
+
+    def blocked_ok(by):
+        return sum(c["success"] for d, c in by.items() if d >= 1)
+    assert blocked_ok(alone) == 0 < blocked_ok(lane)
+    assert sum(c["sv collision"] for d, c in speed.items() if d >= 1) == 0
+    with pytest.raises(SystemExit) as e:
+        probe.main(["--policy", "x.pt"])
+    assert e.value.code == 2 and "go together" in capsys.readouterr().err
+    ev = EnvConfig.load(overrides={"action": {"lane_change_from": "ev"}})
+    with pytest.raises(ValueError, match="KeepLane: decodes lane changes from the 'ev' lane"):
+        probe.run_with_policy(KeepLane(), "lane", "validation", 1, env_config=ev)
