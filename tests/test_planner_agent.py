@@ -199,15 +199,19 @@ def test_planner_decodes_lane_changes_from_where_the_ev_drives_as_the_env_does(t
         assert list(obs[-2:]) == [2.0, 0.0]
 
 
-def test_the_overtaking_policy_runs_on_the_three_lane_road_as_evaluated():
-    """studies/policies' overtaking fine-tune records its decoding (lane changes from the EV's
-    lane) and median actions: the deployed planner built from the file alone sends the env's
-    x_IMR at every decision of a scenario with two slow SVs."""
+@pytest.mark.parametrize("name, lane_change_from, leads", [("bimacppo_three_lane_overtake_leads.pt", "chosen", True),
+                                                           ("bimacppo_three_lane_overtake_ev.pt", "ev", False)])
+def test_the_overtaking_policy_runs_on_the_three_lane_road_as_evaluated(name, lane_change_from, leads):
+    """studies/policies' overtaking fine-tunes record their decoding (lane changes from the
+    chosen lane or the EV's), their observation (the lead features or not) and median actions:
+    the deployed planner built from the file alone observes what the env observes and sends the
+    env's x_IMR at every decision of a scenario with two slow SVs."""
     from conftest import REPO
     from bimacppo_learning.evaluate import eval_seed
-    path = REPO / "studies/policies/bimacppo_three_lane_overtake_ev.pt"
+    path = REPO / "studies/policies" / name
     hp = HighLevelPlanner.load(path, map_id="three_lane_straight")
-    assert hp.cfg.action.lane_change_from == "ev" and hp.action_selection == "median"
+    assert hp.cfg.action.lane_change_from == lane_change_from and hp.action_selection == "median"
+    assert hp.cfg.observation.leads is leads
     env = IntersectionEnv("three_lane_straight", config=hp.cfg)
     obs, _ = env.reset(options={"n_sv": 3, "task": "straight", "scenario_seed": eval_seed(1, 3, 0, "validation"),
                                 "n_slow": 2})
