@@ -116,22 +116,29 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
     return out
 
 
-def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2, action: str | None = None,
-                         mpc_config=None, episodes_out: list | None = None) -> dict:
-    """``run_by_distance`` for ``policy`` (a file, as ``bimacppo-evaluate`` takes it, or an object
-    with act/predict), with the controller its file records unless ``mpc_config`` says."""
+def policy_driver(policy, action: str | None = None, mpc_config=None, env_config=None):
+    """(env, act) for ``policy`` (a file, as ``bimacppo-evaluate`` takes it, or an object with
+    act/predict, run in ``env_config``): an IntersectionEnv on the overtaking map with the policy's
+    env config and the controller its file records unless ``mpc_config`` says, and its driver
+    ``act(env, obs) -> action`` for ``run_by_distance``. The caller closes the env."""
     from bimacppo_learning.env import IntersectionEnv
     from bimacppo_learning.evaluate import (as_actor, check_action, default_selection, resolve_mpc_config,
                                             resolve_policy)
     from bimacppo_planner.policy import with_selection
 
-    spec, loaded, cfg = resolve_policy(policy)
+    spec, loaded, cfg = resolve_policy(policy, env_config)
     actor = as_actor(with_selection(loaded, action or default_selection(spec, loaded), 0))
     env = IntersectionEnv(map_id=MAP, config=cfg, mpc_config=resolve_mpc_config(loaded, mpc_config))
     nvec = tuple(int(n) for n in env.cfg.nvec)
+    return env, lambda env, obs: check_action(actor(obs), nvec)
+
+
+def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2, action: str | None = None,
+                         mpc_config=None, episodes_out: list | None = None) -> dict:
+    """``run_by_distance`` for ``policy`` (``policy_driver``)."""
+    env, act = policy_driver(policy, action, mpc_config)
     try:
-        return run_by_distance(env, lambda env, obs: check_action(actor(obs), nvec), seed_set, episodes, slow_max,
-                               episodes_out)
+        return run_by_distance(env, act, seed_set, episodes, slow_max, episodes_out)
     finally:
         env.close()
 

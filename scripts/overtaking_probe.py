@@ -40,7 +40,7 @@ from bimacppo_planner.policy import ACTION_SELECTIONS
 from bimacppo_sim.drivers import blocked_lanes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from overtaking_lanes import MAP, by_distance_markdown, run_by_distance  # noqa: E402
+from overtaking_lanes import MAP, by_distance_markdown, policy_driver, run_by_distance  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / "studies/config/env_wait_chord_junction_road_overtake_chosen.yaml"
 SLOW_SPEED = 5.0        # m/s: an SV ahead slower than this blocks its lane
@@ -105,22 +105,16 @@ def run_with_policy(policy, heads: str, seed_set: str, episodes: int, slow_max: 
     object with act/predict, run in ``env_config``) with the probe deciding the action entries of
     ``heads`` (a key of PROBE_HEADS), in the env and with the NMPC the policy records. ValueError
     when the policy does not decode lane changes from the chosen lane."""
-    from bimacppo_learning.evaluate import (as_actor, check_action, default_selection, resolve_mpc_config,
-                                            resolve_policy)
-    from bimacppo_planner.policy import with_selection
-
-    spec, loaded, cfg = resolve_policy(policy, env_config)
-    if cfg.action.lane_change_from != "chosen":
+    env, policy_act = policy_driver(policy, action, env_config=env_config)
+    if env.cfg.action.lane_change_from != "chosen":
+        env.close()
         what = policy if isinstance(policy, (str, Path)) else type(policy).__name__
-        raise ValueError(f"{what}: decodes lane changes from the {cfg.action.lane_change_from!r} lane; "
+        raise ValueError(f"{what}: decodes lane changes from the {env.cfg.action.lane_change_from!r} lane; "
                          "the probe keeps the chosen one (action.lane_change_from: chosen)")
-    actor = as_actor(with_selection(loaded, action or default_selection(spec, loaded), 0))
-    env = IntersectionEnv(MAP, config=cfg, mpc_config=resolve_mpc_config(loaded, None))
-    nvec = tuple(int(n) for n in env.cfg.nvec)
     idx = list(PROBE_HEADS[heads])
 
     def mixed(env, obs):
-        a = np.array(check_action(actor(obs), nvec))
+        a = np.array(policy_act(env, obs))
         a[idx] = act(env)[idx]
         return a
     try:

@@ -8,6 +8,7 @@ the road's `lateral_point` (for the lane-change sub-action).
 """
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 from typing import Any, Mapping
@@ -172,8 +173,9 @@ def lane_leads(road, ego, svs: np.ndarray, clip: float) -> np.ndarray:
     at most ``clip``; ``clip`` when there is none), the EV's speed less that SV's speed along the
     EV's heading (0 when there is none), and the distance to the nearest such SV behind (at most
     ``clip``). An SV is in a lane when its offset across the EV's heading lies within half a lane
-    width of the lane's centre, the EV's own lane centred on the EV. A lane that is not there (the road's edge, inside a junction,
-    against the lane's direction) reads 0, 0, 0: no room ahead or behind."""
+    width of the lane's centre, the EV's own lane centred on the EV. A lane that is not there
+    (the road's edge, inside a junction, against the lane's direction) reads 0, 0, 0: no room
+    ahead or behind."""
     x, y, v, psi = (float(ego[0]), float(ego[1]), float(ego[2]), float(ego[3]))
     lanes = lanes_across(road.lateral_point, x, y, psi)
     half = 0.5 * float(road.lane_width)
@@ -182,7 +184,7 @@ def lane_leads(road, ego, svs: np.ndarray, clip: float) -> np.ndarray:
     for k, n in enumerate(LEAD_LANES):
         if n not in lanes:
             continue
-        offset = lanes[n][3] if n != 0 else 0.0
+        offset = lanes[n][3]           # 0 for the EV's own lane: lanes_across starts at the EV
         ahead, closing, behind = clip, 0.0, clip
         for sx, sy, sv, spsi in svs:
             along = math.cos(float(spsi) - psi)
@@ -224,8 +226,10 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
     which lane it blocks, the question behind following, passing and a lane change's gap.
     """
     x, y, v, psi = (float(ego[0]), float(ego[1]), float(ego[2]), float(ego[3]))
-    n_base = 4 * (1 + cfg.max_sv)
-    out = np.empty(sum(size for _, size in observation_blocks(cfg)), dtype=np.float32)
+    blocks = observation_blocks(cfg)
+    starts = itertools.accumulate((size for _, size in blocks), initial=0)
+    block_starts = dict(zip((name for name, _ in blocks), starts))
+    out = np.empty(sum(size for _, size in blocks), dtype=np.float32)
     out[0] = abs(x - float(goal[0]))
     out[1] = abs(y - float(goal[1]))
     out[2] = v
@@ -259,6 +263,7 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
         if road is None:
             raise ValueError("observation.junction needs the road map (observe(..., road=...))")
         cap = cfg.tta_cap
+        n_base = block_starts["junction"]
         out[n_base] = min(max(road.box_gap(x, y), -c), c)
         for k in range(cfg.max_sv):
             if k < len(svs):
@@ -269,13 +274,13 @@ def observe(cfg: ObservationConfig, ego: np.ndarray, goal: np.ndarray, svs: np.n
     if cfg.lanes:
         if road is None:
             raise ValueError("observation.lanes needs the road map (observe(..., road=...))")
-        left, right = lanes_beside(road, x, y, psi)
-        at = n_base + (1 + cfg.max_sv if cfg.junction else 0)
-        out[at:at + LANE_FEATURES] = (left, right)
+        at = block_starts["lanes"]
+        out[at:at + LANE_FEATURES] = lanes_beside(road, x, y, psi)
     if cfg.leads:
         if road is None:
             raise ValueError("observation.leads needs the road map (observe(..., road=...))")
-        out[-LEAD_FEATURES:] = lane_leads(road, ego, all_svs, cfg.sv_clip)
+        at = block_starts["leads"]
+        out[at:at + LEAD_FEATURES] = lane_leads(road, ego, all_svs, cfg.sv_clip)
     return out
 
 
