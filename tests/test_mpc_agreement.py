@@ -115,6 +115,143 @@ def test_gradient_and_exact_hessian_match_finite_differences():
     assert np.abs(H - Hgn).max() > 1e-3 * scale
 
 
+def _hessian_term_by_term(x0, z, xref, up, exact):
+    """The single-shooting Hessian summed stage by stage, sum_k V_k' C_k V_k, from the forward
+    sensitivities (the O(N^3) definition that derivatives' backward recursion must equal)."""
+    n = z.size
+    X = np.empty((N + 1, 4))
+    S = np.zeros((N + 1, 4, n))
+    lam = np.zeros((N + 1, 4))
+    K.derivatives(x0, z, xref, up, P, exact, X, S, lam, np.empty(n), np.empty((n, n)), np.empty((n, n)))
+    L, dt = P[K.P_L], P[K.P_DT]
+    Q = np.diag(2.0 * P[K.P_QX:K.P_QX + 4])
+    H = sum(S[k].T @ Q @ S[k] for k in range(1, N + 1))
+    for k in range(N):
+        for i in range(2):
+            j = 2 * k + i
+            H[j, j] += 2.0 * P[K.P_QU + i] + 2.0 * P[K.P_QDU + i] * (2.0 if k + 1 < N else 1.0)
+            if k + 1 < N:
+                H[j + 2, j] -= 2.0 * P[K.P_QDU + i]
+                H[j, j + 2] -= 2.0 * P[K.P_QDU + i]
+        if not exact:
+            continue
+        v, psi, d = X[k, 2], X[k, 3], z[2 * k + 1]
+        c, s = np.cos(psi + d), np.sin(psi + d)
+        lx, ly, lp = lam[k + 1, 0], lam[k + 1, 1], lam[k + 1, 3]
+        m_vp = dt * (-lx * s + ly * c)
+        m_pp = dt * (-lx * v * c - ly * v * s)
+        M = np.array([[0.0, m_vp, m_vp + lp * dt * 2.0 / L * np.cos(d)],
+                      [m_vp, m_pp, m_pp],
+                      [m_vp + lp * dt * 2.0 / L * np.cos(d), m_pp, m_pp - lp * dt * 2.0 * v / L * np.sin(d)]])
+        Wk = np.vstack([S[k, 2], S[k, 3], np.eye(n)[2 * k + 1]])
+        H += Wk.T @ M @ Wk
+    return H
+
+
+def test_hessian_recursion_equals_the_stage_sum():
+    rng = np.random.default_rng(3)
+    n = 2 * N
+    for _ in range(4):
+        x0 = np.array([0.0, 0.0, rng.uniform(0, 9), rng.uniform(-1, 1)])
+        xref = np.array([rng.uniform(2, 15), rng.uniform(-6, 6), rng.choice([0.0, 4.0, 8.0]), rng.uniform(-1, 1)])
+        up = rng.uniform(-0.5, 0.5, 2)
+        z = np.c_[rng.uniform(-6, 3, N), rng.uniform(-0.6, 0.6, N)].ravel()
+        X, S, lam = np.empty((N + 1, 4)), np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4))
+        g, H, Hgn = np.empty(n), np.full((n, n), np.nan), np.full((n, n), np.nan)
+        K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H, Hgn)
+        H_ref = _hessian_term_by_term(x0, z, xref, up, True)
+        Hgn_ref = _hessian_term_by_term(x0, z, xref, up, False)
+        scale = np.abs(H_ref).max()
+        assert np.abs(H - H_ref).max() < 1e-12 * scale
+        assert np.abs(Hgn - Hgn_ref).max() < 1e-12 * scale
+        H2 = np.full((n, n), np.nan)
+        K.derivatives(x0, z, xref, up, P, False, X, S, lam, g, H2, np.empty((n, n)))
+        assert np.abs(H2 - Hgn_ref).max() < 1e-12 * scale
+        g2 = np.empty(n)
+        K.rollout(x0, z, P, X)
+        K.gradient(x0, z, xref, up, P, X, np.zeros((N + 1, 4)), g2)
+        assert np.array_equal(g2, g)
+
+
+def _qp_at(x0, xref, up, z, vlo, vhi, zlo, zhi, wk):
+    """One SQP iteration's QP at z: (J, pred, code, nW) with wk holding its factors."""
+    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn, starts) = wk
+    n = z.size
+    X = np.empty((N + 1, 4))
+    K.slacks(z, h, P[K.P_DT], b)
+    nW = 0
+    for c in range(h.size):
+        if b[c] <= 1e-12 and nW < n:
+            W[nW] = c
+            nW += 1
+    J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H, Hgn)
+    dmax = np.abs(np.diag(H)).max()
+    if not K.cholesky(H, Lh, n, 1e-6 * dmax):
+        assert K.convexify(H, Lh, G, b, H0, dmax, Hgn)
+    code, nW = K.qp_active_set(H, Lh, g, G, b, W, nW, 200, p, lamW, inW, Y, Ls, Sm, ws, starts)
+    return J, -(g @ p + 0.5 * p @ H @ p), code, nW
+
+
+def test_the_early_stop_agrees_with_the_next_qp():
+    """converged_after_step estimates, from the last QP's factors, whether the QP at the next
+    iterate would stop the SQP. Where the SQP stopped well inside the tolerance, the estimate
+    from the QP one Newton step earlier says so too; half-way along that step it refuses, as
+    does the next QP there."""
+    tol = P[K.P_TOL]
+    checked = refused = 0
+    for x0, ref, up in problems(11, 12):
+        xr, vlo, vhi = np.empty(4), np.empty(N), np.empty(N)
+        zlo, zhi = np.empty(2 * N), np.empty(2 * N)
+        assert K.prepare(x0, ref, up, P, xr, vlo, vhi, zlo, zhi) == K.ST_OK
+        wk = K.sqp_workspace(N, P)
+        K.build_constraints(x0[2], vlo, vhi, zlo, zhi, P, wk[5], wk[6])
+        z = np.zeros(2 * N)
+        K.project(z, x0[2], vlo, vhi, zlo, zhi, P)
+        # Newton steps until the QP's own test would stop; keep the last two iterates
+        prev = None
+        for _ in range(40):
+            J, pred, code, nW = _qp_at(x0, xr, up, z, vlo, vhi, zlo, zhi, wk)
+            J_end, pred_end = J, pred
+            if code == 0 and pred <= tol * (1 + J):
+                break
+            prev = (z.copy(), wk[8].copy())
+            zt = z + wk[8]
+            K.project(zt, x0[2], vlo, vhi, zlo, zhi, P)
+            X = np.empty((N + 1, 4))
+            K.rollout(x0, zt, P, X)
+            if K.cost_of(X, zt, xr, up, P) > J:
+                prev = None
+                break                               # a damped step: not a case for the test
+            z = zt
+        if prev is None or pred_end > 1e-3 * tol * (1 + J_end):
+            continue                                # not well inside the tolerance: the estimate may differ
+        z_prev, p_prev = prev
+        (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn, starts) = wk
+        # the factors of the QP at z_prev, then the estimate at z (= z_prev + its full step)
+        J_prev, pred_prev, code, nW = _qp_at(x0, xr, up, z_prev, vlo, vhi, zlo, zhi, wk)
+        if code != 0:
+            continue
+        X = np.empty((N + 1, 4))
+        K.rollout(x0, z, P, X)
+        J = K.cost_of(X, z, xr, up, P)
+        assert K.converged_after_step(x0, z, xr, up, P, X, J, h, Lh, G, W, nW, lamW, Y, Ls, ws, lam, tol)
+        b_prev = K.slacks(z_prev, h, P[K.P_DT], np.empty(h.size))
+        if pred_prev > 100 * tol * (1 + J_prev) and np.all(b_prev[W[:nW]] <= 1e-12):
+            # no row entered the working set along the step, so it is active half-way too,
+            # where the QP leaves about a quarter of its decrease for the next iteration
+            refused += 1
+            zh = z_prev + 0.5 * p_prev
+            K.project(zh, x0[2], vlo, vhi, zlo, zhi, P)
+            Xh = np.empty((N + 1, 4))
+            K.rollout(x0, zh, P, Xh)
+            Jh = K.cost_of(Xh, zh, xr, up, P)
+            assert not K.converged_after_step(x0, zh, xr, up, P, Xh, Jh, h, Lh, G, W, nW, lamW, Y, Ls, ws, lam, tol)
+            Jn, pred_n, code_n, _ = _qp_at(x0, xr, up, zh, vlo, vhi, zlo, zhi, wk)
+            assert not (code_n == 0 and pred_n <= tol * (1 + Jn))
+        checked += 1
+    assert checked >= 6 and refused >= 2
+
+
 def test_benchmark_sample_meets_the_cost_gap_target():
     from bimacppo_mpc.bench import BenchConfig, generate_problems, solve_all
 

@@ -81,6 +81,10 @@ _GATE_SAT_DEN = 5
 _GATE_KMIN_NUM = 3
 _GATE_KMIN_DEN = 4
 _STEER_ON_BOUND = 1e-9   # |delta - bound| below this counts as on the bound
+# the SQP stops after a full step when the next QP's decrease, estimated from the last QP's
+# factors, is below this share of the tolerance (converged_after_step): a margin of 100 for
+# the Hessian's change over the step, so the estimate says yes only where the QP would
+_EARLY_STOP_MARGIN = 1e-2
 
 
 # the project's one wrap rule (bimacppo_common.conventions), compiled for the kernels
@@ -274,17 +278,63 @@ def slacks(z, h, dt, b):
 
 
 @njit(cache=True)
+def gradient(x0, z, xref, uprev, P, X, lam, g):
+    """The cost's gradient at z by one backward (adjoint) pass, X = rollout(x0, z): the same
+    derivative as ``derivatives``' g in O(N) instead of through the O(N^2) sensitivities."""
+    N = z.size // 2
+    L = P[P_L]
+    dt = P[P_DT]
+    for i in range(4):
+        lam[N, i] = 2.0 * P[P_QX + i] * (X[N, i] - xref[i])
+    for k in range(N - 1, -1, -1):
+        v = X[k, 2]
+        psi = X[k, 3]
+        d = z[2 * k + 1]
+        c = math.cos(psi + d)
+        s = math.sin(psi + d)
+        l0 = lam[k + 1, 0]
+        l1 = lam[k + 1, 1]
+        l2 = lam[k + 1, 2]
+        l3 = lam[k + 1, 3]
+        g[2 * k] = dt * l2
+        g[2 * k + 1] = -dt * v * s * l0 + dt * v * c * l1 + dt * 2.0 * v / L * math.cos(d) * l3
+        if k > 0:
+            lam[k, 0] = l0 + 2.0 * P[P_QX] * (X[k, 0] - xref[0])
+            lam[k, 1] = l1 + 2.0 * P[P_QX + 1] * (X[k, 1] - xref[1])
+            lam[k, 2] = (l2 + dt * c * l0 + dt * s * l1 + dt * 2.0 / L * math.sin(d) * l3
+                         + 2.0 * P[P_QX + 2] * (X[k, 2] - xref[2]))
+            lam[k, 3] = l3 - dt * v * s * l0 + dt * v * c * l1 + 2.0 * P[P_QX + 3] * (X[k, 3] - xref[3])
+    for k in range(N):
+        for i in range(2):
+            j = 2 * k + i
+            u = z[j]
+            up = uprev[i] if k == 0 else z[j - 2]
+            g[j] += 2.0 * P[P_QU + i] * u + 2.0 * P[P_QDU + i] * (u - up)
+            if k + 1 < N:
+                g[j] -= 2.0 * P[P_QDU + i] * (z[j + 2] - u)
+
+
+@njit(cache=True)
 def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn):
     """Cost, gradient and (exact or Gauss-Newton) Hessian of the single-shooting cost.
 
-    Hgn receives the Gauss-Newton part (always positive definite) when exact is set."""
+    Hgn receives the Gauss-Newton part (always positive definite) when exact is set.
+
+    The Hessian is sum_k V_k' C_k V_k with V_k = d(x_k, u_k)/dz and C_k the Hessian of stage
+    k's Lagrangian (tracking weights plus the costate-weighted curvature of the Euler step;
+    the weights alone for Gauss-Newton). It is assembled by a backward recursion on the
+    cost-to-go curvature P_k = C_k^xx + A_k' P_{k+1} A_k: u_l's own block is
+    C_l^uu + B_l' P_{l+1} B_l, and u_j (j < l) meets u_l only through x_l, so their block is
+    (dx_l/du_j)' (C_l^xu + A_l' P_{l+1} B_l). That is O(N^2) small products instead of the
+    O(N^3) of forming the sum term by term."""
     N = z.size // 2
     n = 2 * N
     L = P[P_L]
     dt = P[P_DT]
     rollout(x0, z, P, X)
     J = cost_of(X, z, xref, uprev, P)
-    # forward sensitivities: S[k] = dx_k/dz; columns >= 2k are zero
+    # forward sensitivities: S[k] = dx_k/dz; columns >= 2k are zero and never written, so S
+    # must come zeroed (sqp_workspace's is)
     for k in range(N):
         v = X[k, 2]
         psi = X[k, 3]
@@ -313,108 +363,175 @@ def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn):
         S[k + 1, 1, 2 * k + 1] = dt * v * c
         S[k + 1, 2, 2 * k + 1] = 0.0
         S[k + 1, 3, 2 * k + 1] = dt * 2.0 * v / L * math.cos(d)
-        for j in range(2 * k + 2, n):
-            for i in range(4):
-                S[k + 1, i, j] = 0.0
-    g[:] = 0.0
-    H[:, :] = 0.0
-    # state terms: gradient and Gauss-Newton part (lower triangle)
-    for k in range(1, N + 1):
-        m = 2 * k
+    # gradient and costates lam[k] = d(cost of x_k..x_N)/dx_k
+    gradient(x0, z, xref, uprev, P, X, lam, g)
+    passes = 2 if exact else 1
+    for ps in range(passes):
+        # pass 0: the Hessian asked for (exact or Gauss-Newton) into H; pass 1: Gauss-Newton into Hgn
+        curv = exact and ps == 0
+        Hm = H if ps == 0 else Hgn
+        Pn = np.zeros((4, 4))
         for i in range(4):
-            q = P[P_QX + i]
-            if q == 0.0:
-                continue
-            w = 2.0 * q * (X[k, i] - xref[i])
-            for j in range(m):
-                sij = S[k, i, j]
-                if sij == 0.0:
-                    continue
-                g[j] += w * sij
-                t = 2.0 * q * sij
-                for l in range(j + 1):
-                    H[j, l] += t * S[k, i, l]
-    # input terms
-    for k in range(N):
-        for i in range(2):
-            j = 2 * k + i
-            u = z[j]
-            up = uprev[i] if k == 0 else z[j - 2]
-            qu = P[P_QU + i]
-            qd = P[P_QDU + i]
-            g[j] += 2.0 * qu * u + 2.0 * qd * (u - up)
-            H[j, j] += 2.0 * qu + 2.0 * qd
-            if k + 1 < N:
-                g[j] -= 2.0 * qd * (z[j + 2] - u)
-                H[j, j] += 2.0 * qd
-                H[j + 2, j] -= 2.0 * qd
-    if exact:
-        for j in range(n):
-            for l in range(j + 1):
-                Hgn[j, l] = H[j, l]
-                Hgn[l, j] = H[j, l]
-        # costates lam[k] = d(cost of x_k..x_N)/dx_k, then curvature of each Euler step
-        for i in range(4):
-            lam[N, i] = 2.0 * P[P_QX + i] * (X[N, i] - xref[i])
-        for k in range(N - 1, 0, -1):
+            Pn[i, i] = 2.0 * P[P_QX + i]
+        A = np.empty((4, 4))
+        B = np.empty((4, 2))
+        PA = np.empty((4, 4))
+        PB = np.empty((4, 2))
+        Kx = np.empty((4, 2))
+        for k in range(N - 1, -1, -1):
             v = X[k, 2]
             psi = X[k, 3]
             d = z[2 * k + 1]
             c = math.cos(psi + d)
             s = math.sin(psi + d)
-            l0 = lam[k + 1, 0]
-            l1 = lam[k + 1, 1]
-            l2 = lam[k + 1, 2]
-            l3 = lam[k + 1, 3]
-            lam[k, 0] = l0
-            lam[k, 1] = l1
-            lam[k, 2] = l2 + dt * c * l0 + dt * s * l1 + dt * 2.0 / L * math.sin(d) * l3
-            lam[k, 3] = l3 - dt * v * s * l0 + dt * v * c * l1
-            for i in range(4):
-                lam[k, i] += 2.0 * P[P_QX + i] * (X[k, i] - xref[i])
-        M = np.empty((3, 3))
-        T = np.empty((3, n))
+            for r in range(4):
+                for q in range(4):
+                    A[r, q] = 1.0 if r == q else 0.0
+            A[0, 2] = dt * c
+            A[0, 3] = -dt * v * s
+            A[1, 2] = dt * s
+            A[1, 3] = dt * v * c
+            A[3, 2] = dt * 2.0 / L * math.sin(d)
+            B[0, 0] = 0.0
+            B[1, 0] = 0.0
+            B[2, 0] = dt
+            B[3, 0] = 0.0
+            B[0, 1] = -dt * v * s
+            B[1, 1] = dt * v * c
+            B[2, 1] = 0.0
+            B[3, 1] = dt * 2.0 * v / L * math.cos(d)
+            # costate-weighted second derivatives of the Euler step in (v_k, psi_k, delta_k)
+            m_vp = 0.0
+            m_vd = 0.0
+            m_pp = 0.0
+            m_dd = 0.0
+            if curv:
+                lx = lam[k + 1, 0]
+                ly = lam[k + 1, 1]
+                lp = lam[k + 1, 3]
+                m_vp = dt * (-lx * s + ly * c)
+                m_pp = dt * (-lx * v * c - ly * v * s)
+                m_vd = m_vp + lp * dt * 2.0 / L * math.cos(d)
+                m_dd = m_pp - lp * dt * 2.0 * v / L * math.sin(d)
+            # PA = P_{k+1} A, PB = P_{k+1} B
+            for r in range(4):
+                for q in range(4):
+                    t = 0.0
+                    for i in range(4):
+                        t += Pn[r, i] * A[i, q]
+                    PA[r, q] = t
+                for q in range(2):
+                    t = 0.0
+                    for i in range(4):
+                        t += Pn[r, i] * B[i, q]
+                    PB[r, q] = t
+            # u_k's own block: C^uu + B' P B
+            for q1 in range(2):
+                for q2 in range(q1 + 1):
+                    t = 0.0
+                    for i in range(4):
+                        t += B[i, q1] * PB[i, q2]
+                    Hm[2 * k + q1, 2 * k + q2] = t
+            Hm[2 * k + 1, 2 * k + 1] += m_dd
+            # Kx <- C^xu + A' P B
+            for r in range(4):
+                for q in range(2):
+                    t = 0.0
+                    for i in range(4):
+                        t += A[i, r] * PB[i, q]
+                    Kx[r, q] = t
+            Kx[2, 1] += m_vd
+            Kx[3, 1] += m_pp
+            # the blocks of u_j, j < k: (dx_k/du_j)' Kx
+            for q in range(2):
+                row = 2 * k + q
+                for j in range(2 * k):
+                    Hm[row, j] = (S[k, 0, j] * Kx[0, q] + S[k, 1, j] * Kx[1, q] + S[k, 2, j] * Kx[2, q]
+                                  + S[k, 3, j] * Kx[3, q])
+            # P_k = C^xx + A' P A (not needed at k = 0: x_0 is fixed)
+            if k > 0:
+                for r in range(4):
+                    for q in range(r + 1):
+                        t = 0.0
+                        for i in range(4):
+                            t += A[i, r] * PA[i, q]
+                        Pn[r, q] = t
+                        Pn[q, r] = t
+                for i in range(4):
+                    Pn[i, i] += 2.0 * P[P_QX + i]
+                Pn[2, 3] += m_vp
+                Pn[3, 2] += m_vp
+                Pn[3, 3] += m_pp
+        # input terms
         for k in range(N):
-            v = X[k, 2]
-            psi = X[k, 3]
-            d = z[2 * k + 1]
-            c = math.cos(psi + d)
-            s = math.sin(psi + d)
-            lx = lam[k + 1, 0]
-            ly = lam[k + 1, 1]
-            lp = lam[k + 1, 3]
-            # second derivatives of the Euler step w.r.t. (v_k, psi_k, delta_k), weighted by costates
-            m_vp = dt * (-lx * s + ly * c)
-            m_pp = dt * (-lx * v * c - ly * v * s)
-            M[0, 0] = 0.0
-            M[0, 1] = m_vp
-            M[1, 0] = m_vp
-            M[0, 2] = m_vp + lp * dt * 2.0 / L * math.cos(d)
-            M[2, 0] = M[0, 2]
-            M[1, 1] = m_pp
-            M[1, 2] = m_pp
-            M[2, 1] = m_pp
-            M[2, 2] = m_pp - lp * dt * 2.0 * v / L * math.sin(d)
-            m = 2 * k + 2
-            # W rows: dv_k/dz, dpsi_k/dz, ddelta_k/dz (= unit vector at 2k+1)
-            for p in range(3):
-                for j in range(m):
-                    wv = S[k, 2, j]
-                    wp = S[k, 3, j]
-                    wd = 1.0 if j == 2 * k + 1 else 0.0
-                    T[p, j] = M[p, 0] * wv + M[p, 1] * wp + M[p, 2] * wd
-            for j in range(m):
-                wv = S[k, 2, j]
-                wp = S[k, 3, j]
-                wd = 1.0 if j == 2 * k + 1 else 0.0
-                if wv == 0.0 and wp == 0.0 and wd == 0.0:
-                    continue
-                for l in range(j + 1):
-                    H[j, l] += wv * T[0, l] + wp * T[1, l] + wd * T[2, l]
-    for j in range(n):
-        for l in range(j):
-            H[l, j] = H[j, l]
+            for i in range(2):
+                j = 2 * k + i
+                qd = P[P_QDU + i]
+                Hm[j, j] += 2.0 * P[P_QU + i] + 2.0 * qd
+                if k + 1 < N:
+                    Hm[j, j] += 2.0 * qd
+                    Hm[j + 2, j] -= 2.0 * qd
+        for j in range(n):
+            for l in range(j):
+                Hm[l, j] = Hm[j, l]
     return J
+
+
+@njit(cache=True)
+def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, Ls, ws, lam, tol):
+    """True when the next SQP iteration at the accepted full step z (states X, cost J) would
+    stop at once: the QP's predicted decrease there is <= tol * (1 + J) with the same working
+    set, estimated without a new Hessian.
+
+    At z the working-set QP's step is p = -Lh^-T (I - Y (Y'Y)^-1 Y') Lh^-1 r with r = grad +
+    G_W' lamW (the KKT residual under the multipliers of the QP just solved) and decrease
+    1/2 |(I - Y (Y'Y)^-1 Y') Lh^-1 r|^2, where Lh and Y (= Lh^-1 G_W') are the factors of the
+    previous iterate's Hessian: after a full Newton step the two Hessians differ by the order
+    of the step, so the estimate must be under _EARLY_STOP_MARGIN times the tolerance. The working set must
+    still be active at z, and the updated multipliers non-negative (the QP's own test), or
+    the next QP would move its working set. When the test holds, the next iteration would
+    return z unchanged: the result is the same, one derivative evaluation, convexification
+    and QP earlier."""
+    n = z.size
+    g = ws[0]
+    b = ws[1]
+    q = ws[2]
+    tmp = ws[3]
+    y = ws[4]
+    gradient(x0, z, xref, uprev, P, X, lam, g)
+    slacks(z, h, P[P_DT], b)
+    gnorm = 1.0
+    for i in range(n):
+        gnorm = max(gnorm, abs(g[i]))
+    for a in range(nW):
+        if b[W[a]] > _EPS_ACTIVE:
+            return False
+    # r = g + G_W' lamW
+    for a in range(nW):
+        row = G[W[a]]
+        la = lamW[a]
+        for i in range(n):
+            g[i] += la * row[i]
+    fwd_solve(Lh, g, q, n)
+    for a in range(nW):
+        t = 0.0
+        for i in range(n):
+            t += Y[i, a] * q[i]
+        tmp[a] = t
+    if nW > 0:
+        fwd_solve(Ls, tmp, y, nW)
+        bwd_solve(Ls, y, tmp, nW)
+    for a in range(nW):
+        # the multipliers the next QP would find: lamW + its correction -(Y'Y)^-1 Y'q
+        if lamW[a] - tmp[a] < -1e-11 * gnorm:
+            return False
+    pred = 0.0
+    for i in range(n):
+        t = q[i]
+        for a in range(nW):
+            t -= Y[i, a] * tmp[a]
+        pred += t * t
+    return 0.5 * pred <= _EARLY_STOP_MARGIN * tol * (1.0 + J)
 
 
 @njit(cache=True)
@@ -864,6 +981,13 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
             return ST_LINESEARCH, J, it
         for i in range(n):
             z[i] = zt[i]
+        if (code == 0 and alpha == 1.0 and it + 1 < max_iter
+                and converged_after_step(x0, z, xref, uprev, P, Xt, Jt, h, Lh, G, W, nW, lamW, Y, Ls, ws,
+                                         lam, tol)):
+            for k in range(N + 1):
+                for i in range(4):
+                    X[k, i] = Xt[k, i]
+            return ST_OK, Jt, it + 1
         # the working set is kept: qp_active_set drops the rows no longer active at the new z
     rollout(x0, z, P, X)
     return ST_MAX_ITER, cost_of(X, z, xref, uprev, P), max_iter
