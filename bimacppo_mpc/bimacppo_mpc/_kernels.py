@@ -702,7 +702,7 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
     """
     n = g.size
     m = b.size
-    grad = ws[0]
+    qg = ws[0]
     q = ws[1]
     s = ws[2]
     y = ws[3]
@@ -711,6 +711,7 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
     lam = ws[6]
     slack = ws[7]
     Gs = ws[8]
+    w = ws[9]
     N = n // 2
     dt = G[2 * n, 0]
     for i in range(n):
@@ -731,14 +732,14 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
     gnorm = 1.0
     for i in range(n):
         gnorm = max(gnorm, abs(g[i]))
+    # q = Lh^{-1} (H p + g) = Lh' p + Lh^{-1} g (H = Lh Lh'), with w = Lh' p kept up to date from
+    # the steps (Lh' s = -r below): O(n) per iteration instead of a product with H and a solve
+    fwd_solve(Lh, g, qg, n)
+    for i in range(n):
+        w[i] = 0.0
     for it in range(maxit):
-        # grad = H p + g ; q = Lh^{-1} grad
         for i in range(n):
-            t = g[i]
-            for k in range(n):
-                t += H[i, k] * p[k]
-            grad[i] = t
-        fwd_solve(Lh, grad, q, n)
+            q[i] = w[i] + qg[i]
         # lam = -S^{-1} Y' q ; r = q + Y lam ; s = -Lh^{-T} r
         for a in range(nW):
             t = 0.0
@@ -790,6 +791,7 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
                         block = c
             for i in range(n):
                 p[i] += alpha * s[i]
+                w[i] -= alpha * r[i]
             for c in range(m):
                 if not inW[c]:
                     slack[c] = max(slack[c] - alpha * Gs[c], 0.0)
@@ -899,7 +901,7 @@ def sqp_workspace(N, P):
     return (np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4)), np.empty(n), np.empty((n, n)),
             np.zeros((n, n)), np.empty((m, n)), np.empty(m), np.empty(m), np.empty(n), np.empty(n),
             np.empty(n, dtype=np.int64), np.zeros(m, dtype=np.bool_), np.empty(n), np.empty((n, n)),
-            np.zeros((n, n)), np.empty((n, n)), np.empty((9, max(n, m))), np.empty((N + 1, 4)),
+            np.zeros((n, n)), np.empty((n, n)), np.empty((10, max(n, m))), np.empty((N + 1, 4)),
             np.empty((n, n)), np.empty((n, n)), np.empty(n, dtype=np.int64))
 
 
