@@ -38,11 +38,20 @@ before each reset). Pass them as `--ros-args -p name:=value` or in a `--params-f
 """
 
 
+class Computed(str):
+    """A default the node computes at start-up (an expression of its own state): the table shows
+    the expression."""
+
+
 def _value(node, module):
     try:
         return ast.literal_eval(node)
     except (ValueError, TypeError, SyntaxError):
+        pass
+    try:
         return eval(compile(ast.Expression(node), "<declare>", "eval"), vars(module))  # noqa: S307 - our own source
+    except NameError:
+        return Computed(ast.unparse(node))
 
 
 def declarations(module_name: str) -> list:
@@ -76,6 +85,8 @@ def declarations(module_name: str) -> list:
 
 
 def _cell(v) -> str:
+    if isinstance(v, Computed):
+        return f"set at start-up: `{v}`"
     if isinstance(v, bool):
         return f"`{str(v).lower()}`"
     if isinstance(v, (int, float, str)):

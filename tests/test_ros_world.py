@@ -78,6 +78,35 @@ def test_run_time_parameter_changes_are_applied_or_refused_with_a_reason():
         rclpy.try_shutdown()
 
 
+def test_world_offers_its_maps_tasks_and_refuses_the_others():
+    """map_tasks tells a client (the curriculum) which tasks the map has; a task the map lacks
+    is refused when set, with a reason naming them, and map_tasks itself cannot be set."""
+    from bimacppo_common.conventions import TASKS
+    from bimacppo_ros_common.params import ConfigError
+    from bimacppo_sim.ros.world_node import WorldNode
+
+    rclpy.init()
+    try:
+        road = WorldNode(parameter_overrides=[Parameter("map_id", value="three_lane_straight"),
+                                              Parameter("autostart", value=False)])
+        assert road.get_parameter("map_tasks").value == ["straight"]
+        bad = road.set_parameters([Parameter("scenario.task", value="left")])[0]
+        assert not bad.successful and "map_tasks: straight" in bad.reason, bad.reason
+        assert road.set_parameters([Parameter("scenario.task", value="straight")])[0].successful
+        road.destroy_node()
+        junction = WorldNode(parameter_overrides=[Parameter("autostart", value=False)])
+        assert junction.get_parameter("map_tasks").value == list(TASKS)
+        assert junction.set_parameters([Parameter("scenario.task", value="left")])[0].successful
+        junction.destroy_node()
+        with pytest.raises(ConfigError, match="map_tasks comes from the map"):
+            WorldNode(parameter_overrides=[Parameter("map_tasks", value=["left"])])
+        with pytest.raises(ValueError, match="not available on map 'three_lane_straight'"):
+            WorldNode(parameter_overrides=[Parameter("map_id", value="three_lane_straight"),
+                                           Parameter("scenario.task", value="right")])
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_realtime_world_never_applies_a_command_stamped_in_the_future():
     """Commands with a = +3 stamped far ahead (then none): the world drops them and brakes; it
     must not accelerate the EV until the episode ends."""

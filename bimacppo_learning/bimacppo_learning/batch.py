@@ -28,7 +28,7 @@ from typing import Any, Mapping
 import numpy as np
 from gymnasium.utils import seeding
 
-from bimacppo_common.conventions import TASKS
+from bimacppo_common.conventions import TASKS, task_on_map
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, idle_share, observe, step_reward
 from bimacppo_sim import Scenario, World, load_map
@@ -122,9 +122,7 @@ class IntersectionBatch:
         if task is None:
             task = self.tasks[int(rng.integers(0, len(self.tasks)))]
         else:
-            task = TASKS[task_index(task)]
-            if len(self.tasks) == 1 and task not in self.tasks:
-                task = self.tasks[0]      # the road's only task: every curriculum arm runs it
+            task = task_on_map(TASKS[task_index(task)], self.tasks)
         seed = options.get("scenario_seed")
         seed = int(rng.integers(0, SEED_HIGH)) if seed is None else int(seed)
         if "n_slow" not in options:

@@ -23,9 +23,10 @@ MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
 def make_env(map_id: str, env_config: EnvConfig, mpc_solver: str, slow_svs: int = 0, mpc_config=None,
              world_config=None):
     """The training env's picklable factory (one env when called, ``make_batch(n)`` for the
-    batched vector env). Every curriculum draws all three tasks (its arms); a map with fewer (the
-    straight road has only "straight") folds them onto its own, and ``slow_svs`` > 0 slows up to
-    that many SVs per episode (paper §IV-C overtaking): both rules live in ``batch.py``.
+    batched vector env). Every curriculum draws all three tasks (its arms); a map with one task
+    (the straight road has only "straight") runs it for every arm (``conventions.task_on_map``,
+    the rule the ROS curriculum node follows too), and ``slow_svs`` > 0 slows up to that many SVs
+    per episode (paper §IV-C overtaking, in ``batch.py``).
     ``mpc_config`` (an MPCConfig; None: the packaged mpc.yaml) is the NMPC under the planner,
     ``world_config`` (a WorldConfig; None: the packaged world.yaml) the world of the episodes."""
     from .vec_env import EnvFactory

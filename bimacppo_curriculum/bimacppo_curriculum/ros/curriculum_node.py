@@ -6,6 +6,11 @@ wait for the episode's result -> ``update(i, j, return)`` -> next, until ``episo
 episodes are done (0 = forever). All service calls are asynchronous, so the node works in
 a single-threaded executor next to the world it drives.
 
+Before the first episode the node reads the world's ``map_tasks`` parameter (GetParameters) and
+runs each arm's task through ``conventions.task_on_map``: on a map with one task (the straight
+road) every arm runs that task, as in training; a world that does not declare ``map_tasks`` is
+taken to offer all three.
+
 The return comes from /planner/episode_result (the world's result plus the agent's
 ``return``, see docs/interfaces.md); ``result_topic`` can point elsewhere. Scenario seeds
 are ``seed_base + episode index``: a run is reproducible from its parameters.
@@ -17,12 +22,12 @@ from collections import Counter, OrderedDict
 
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
+from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from bimacppo_common.conventions import TASKS
+from bimacppo_common.conventions import TASKS, task_on_map
 from bimacppo_curriculum import SCHEDULERS, make_scheduler
 from bimacppo_interfaces import contract as I
 from bimacppo_ros_common.params import declare
@@ -60,6 +65,9 @@ class CurriculumNode(Node):
                                      "re-request the episode", lo=0.1, hi=3600.0)
         self.sched = make_scheduler(scheduler, seed=seed, total_episodes=self.episodes or None)
         self.cli_params = self.create_client(SetParameters, f"/{world}/set_parameters")
+        self.cli_get = self.create_client(GetParameters, f"/{world}/get_parameters")
+        self.world_tasks = None    # the world's map_tasks, read once before the first episode
+        self._asking = False
         self.cli_reset = self.create_client(Trigger, f"/{world}/reset")
         self.dropped: dict = {}
         self.create_subscription(I.DiagnosticStatus, result_topic,
@@ -69,7 +77,7 @@ class CurriculumNode(Node):
         self.finished = 0
         self.counts: Counter = Counter()
         self.results = []          # (i, j, seed, outcome, return)
-        self.current = None        # (i, j, seed) of the running episode
+        self.current = None        # (i, j, seed, task run) of the running episode
         self._busy = False         # a set/reset round trip is in flight
         self._warned = False
         self._last_progress = time.monotonic()
@@ -114,17 +122,52 @@ class CurriculumNode(Node):
     def start_next(self) -> bool:
         if self._busy or self.done:
             return False
-        if not (self.cli_params.service_is_ready() and self.cli_reset.service_is_ready()):
+        if not (self.cli_params.service_is_ready() and self.cli_reset.service_is_ready()
+                and self.cli_get.service_is_ready()):
+            return False
+        if self.world_tasks is None:
+            if not self._asking:
+                self._asking = True
+                self.cli_get.call_async(GetParameters.Request(names=["map_tasks"])).add_done_callback(
+                    self._after_tasks)
             return False
         self._last_progress = time.monotonic()
         i, j = self.sched.sample()
+        try:
+            task = task_on_map(TASKS[j], self.world_tasks)
+        except ValueError as exc:
+            self.done = True
+            self.get_logger().error(f"arm (n_sv={i}, task={TASKS[j]}) cannot run on this world: {exc}")
+            return False
         seed = self.seed_base + self.finished
         self._busy = True
         self.current = None
         req = SetParameters.Request(parameters=[
-            _param("scenario.n_sv", i), _param("scenario.task", TASKS[j]), _param("scenario.seed", seed)])
-        self.cli_params.call_async(req).add_done_callback(lambda f: self._after_params(f, (i, j, seed)))
+            _param("scenario.n_sv", i), _param("scenario.task", task), _param("scenario.seed", seed)])
+        self.cli_params.call_async(req).add_done_callback(lambda f: self._after_params(f, (i, j, seed, task)))
         return True
+
+    def _after_tasks(self, fut) -> None:
+        """The world's map_tasks: a string array of tasks, or not declared (all three)."""
+        self._asking = False
+        try:
+            value = fut.result().values[0]
+        except Exception as exc:  # noqa: BLE001 - a failed call is retried by the timer
+            self.get_logger().error(f"reading the world's map_tasks failed: {exc}")
+            return
+        if value.type == ParameterType.PARAMETER_NOT_SET:
+            self.world_tasks = TASKS
+        else:
+            offered = list(value.string_array_value) if value.type == ParameterType.PARAMETER_STRING_ARRAY else []
+            if not offered or any(t not in TASKS for t in offered):
+                self.done = True
+                self.get_logger().error(f"the world's map_tasks must be a non-empty list of {TASKS}, "
+                                        f"got type {value.type} {offered}")
+                return
+            self.world_tasks = tuple(offered)
+        if len(self.world_tasks) == 1:
+            self.get_logger().info(f"the world offers only the task {self.world_tasks[0]}: every arm runs it")
+        self.start_next()
 
     def _after_params(self, fut, scen) -> None:
         try:
@@ -152,15 +195,16 @@ class CurriculumNode(Node):
             self.get_logger().error(f"/world/reset refused: {resp.message}")
             return
         self.current = scen
-        self.get_logger().info(f"episode {self.finished + 1}: n_sv={scen[0]} task={TASKS[scen[1]]} "
+        arm = "" if scen[3] == TASKS[scen[1]] else f" (arm {TASKS[scen[1]]})"
+        self.get_logger().info(f"episode {self.finished + 1}: n_sv={scen[0]} task={scen[3]}{arm} "
                                f"seed={scen[2]} ({resp.message})")
 
     def _on_result(self, msg) -> None:
         res = I.status_to_result(msg)
         if self.current is None:
             return
-        i, j, seed = self.current
-        if (res.n_sv, res.task, res.seed) != (i, TASKS[j], seed):
+        i, j, seed, task = self.current
+        if (res.n_sv, res.task, res.seed) != (i, task, seed):
             return  # a result of an abandoned episode
         self.current = None
         if res.episode_return is None:

@@ -86,6 +86,14 @@ class WorldNode(Node):
         except Exception as exc:  # noqa: BLE001 - YAML syntax, missing keys, wrong types: all user errors
             raise ConfigError(f"world: parameter map_id {map_id!r}: {type(exc).__name__}: "
                               f"{one_line(exc)}") from None
+        # the tasks the map offers, in TASKS order: a client (the curriculum) reads them and runs
+        # each arm's task through conventions.task_on_map; the world refuses any other task
+        self.tasks = tuple(t for t in TASKS if t in road.turns)
+        offered = declare(self, "map_tasks", list(self.tasks), "tasks the map offers (set from map_id; a "
+                                                                 "curriculum reads it)")
+        if tuple(offered) != self.tasks:
+            raise ConfigError(f"world: parameter map_tasks comes from the map ({', '.join(self.tasks)}); "
+                              f"it cannot be set (got {list(offered)})")
         self.dropped: dict = {}
         self.world = World(road)
         self.frame = road.frame        # the map file's pose: the core runs in the map's own frame
@@ -141,6 +149,9 @@ class WorldNode(Node):
         n_sv, task, seed = params
         if task not in TASKS:
             raise ValueError(f"world: scenario.task must be one of {TASKS}, got {task!r}")
+        if task not in self.tasks:
+            raise ValueError(f"world: scenario.task {task!r} is not available on map {self.world.road.id!r} "
+                             f"(map_tasks: {', '.join(self.tasks)})")
         if not isinstance(n_sv, int) or not 0 <= n_sv <= self.world.max_sv:
             raise ValueError(f"world: scenario.n_sv must be an integer in 0..{self.world.max_sv}, got {n_sv!r}")
         return Scenario(n_sv=n_sv, task=task, seed=seed)
