@@ -7,14 +7,16 @@ the optional rate bounds (steering rate over the horizon, jerk on the first move
 and difference rows), so every constraint is linear and each problem's feasible set is a
 polytope. The kernel runs a line-search SQP on it:
 
-* derivatives of the cost by forward sensitivities S_k = dx_k/dz, exact Hessian by a
-  second-order adjoint (costates lambda_k times the curvature of the Euler step), or the
-  Gauss-Newton part only;
+* the gradient by an adjoint pass, the exact Hessian (costates lambda_k times the curvature
+  of the Euler step added to the tracking weights) or its Gauss-Newton part by a backward
+  cost-to-go recursion over the forward sensitivities S_k = dx_k/dz (``derivatives``);
 * each QP is solved exactly by a dense primal active-set method (range space, incremental
   Cholesky of the working-set Schur complement), warm-started with the previous working set;
 * every iterate is feasible (a convex combination of feasible points), so the merit
   function is the cost itself and bounds hold exactly up to rounding, which a final
-  forward clamp removes.
+  forward clamp removes;
+* after a full step the SQP stops without a new Hessian when the last QP's factors show
+  that the next QP would find no decrease (``converged_after_step``).
 
 A problem can be solved from a second start and the cheaper result kept (see
 ``steer_bound_start`` and its gate ``second_start_pays``): the closed-loop problems have
