@@ -69,3 +69,33 @@ def test_arms_run_their_own_task_where_the_map_has_it():
     assert offered == TASKS
     assert all(arm == task == world_task for arm, task, world_task in runs), runs
     assert len({arm for arm, _, _ in runs}) >= 2, runs
+
+
+def test_a_lost_map_tasks_request_is_asked_again():
+    """A map_tasks request that never gets an answer (the world died after it was sent) must not
+    hold the curriculum forever: after stall_timeout_s it asks again and starts the episode."""
+    from bimacppo_curriculum.ros.curriculum_node import CurriculumNode
+    from bimacppo_sim.ros.world_node import WorldNode
+
+    rclpy.init()
+    ex = SingleThreadedExecutor()
+    nodes = []
+    try:
+        world = WorldNode(parameter_overrides=[Parameter("map_id", value="three_lane_straight"),
+                                               Parameter("autostart", value=False)])
+        cur = CurriculumNode(parameter_overrides=[Parameter("episodes", value=0),
+                                                  Parameter("retry_period_s", value=0.05),
+                                                  Parameter("stall_timeout_s", value=0.5)])
+        cur._asking = True                   # as if a request had been sent and lost
+        nodes = [world, cur]
+        for n in nodes:
+            ex.add_node(n)
+        t0 = time.monotonic()
+        while cur.current is None and time.monotonic() - t0 < 15.0:
+            ex.spin_once(timeout_sec=0.02)
+        assert cur.current is not None and cur.world_tasks == ("straight",)
+        assert cur.current[3] == "straight" and time.monotonic() - t0 >= 0.5
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()

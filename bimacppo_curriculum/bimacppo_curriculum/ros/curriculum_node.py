@@ -107,15 +107,17 @@ class CurriculumNode(Node):
         (and a request sent while it was gone never gets an answer), and a loop whose
         world keeps re-sending a tick that nobody answers never ends its episode. When no
         new tick (a state stamp not seen before) came for ``stall_timeout_s`` while an
-        episode or a request is outstanding, the request is dropped and the next episode
-        requested again.
+        episode or a request (map_tasks included) is outstanding, the request is dropped and
+        the next episode requested again, after map_tasks is read again (a restarted world may
+        serve another map).
         """
         if self.done:
             return
-        if (self.current is not None or self._busy) and \
+        if (self.current is not None or self._busy or self._asking) and \
                 time.monotonic() - self._last_progress > self.stall_timeout:
             self.get_logger().warning(f"no new tick for {self.stall_timeout:g} s: requesting the episode again")
-            self.current, self._busy = None, False
+            self.current, self._busy, self._asking = None, False, False
+            self.world_tasks = None        # a restarted world may serve another map: read map_tasks again
         if self.current is None and not self._busy:
             self.start_next()
 
@@ -128,6 +130,7 @@ class CurriculumNode(Node):
         if self.world_tasks is None:
             if not self._asking:
                 self._asking = True
+                self._last_progress = time.monotonic()   # an unanswered request counts as a stall too
                 self.cli_get.call_async(GetParameters.Request(names=["map_tasks"])).add_done_callback(
                     self._after_tasks)
             return False
