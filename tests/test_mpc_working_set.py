@@ -178,3 +178,21 @@ def test_the_one_pass_rebuild_is_the_row_by_row_appends():
         assert np.array_equal(Y2[:, :nW2], Y1[:, :nW1]) and np.array_equal(Ls2[:nW2, :nW2], Ls1[:nW1, :nW1])
         dropped += nc - nW1
     assert dropped > 0
+
+
+def test_deleting_a_row_keeps_the_factor_of_the_rest():
+    """Dropping working-set row a leaves Ls the Cholesky factor of Y'Y without row and column
+    a: lower triangular with a positive diagonal, zero outside the remaining rows."""
+    rng = np.random.default_rng(5)
+    n = 12
+    for nW in (1, 2, 5, 9):
+        for a in range(nW):
+            Y = rng.standard_normal((n, nW))
+            Ls = np.zeros((n, n))
+            Ls[:nW, :nW] = np.linalg.cholesky(Y.T @ Y)
+            K._ws_delete(Ls, nW, a)
+            rest = np.delete(Y, a, axis=1)
+            m = nW - 1
+            assert np.allclose(Ls[:m, :m], np.linalg.cholesky(rest.T @ rest) if m else np.zeros((0, 0)))
+            assert np.all(np.diag(Ls)[:m] > 0.0)
+            assert np.all(np.triu(Ls, 1) == 0.0) and np.all(Ls[m:] == 0.0) and np.all(Ls[:, m:] == 0.0)

@@ -684,15 +684,35 @@ def _ws_rebuild(Lh, G, cand, nc, Y, Ls, n, W, inW, y, tmp, Yc, starts):
 
 
 @njit(cache=True)
-def _ws_refactor(Y, Ls, nW, n, Sm):
-    for r in range(nW):
-        for q in range(r + 1):
-            t = 0.0
-            for i in range(n):
-                t += Y[i, r] * Y[i, q]
-            Sm[r, q] = t
-            Sm[q, r] = t
-    return cholesky(Sm, Ls, nW, 0.0)
+def _ws_delete(Ls, nW, a):
+    """Ls, the Cholesky factor of the working set's Schur complement Y'Y (nW rows), becomes the
+    factor with row and column a removed, in O((nW - a)^2).
+
+    Y'Y without row and column a is L' L'^T, where L' is Ls without row a: lower triangular
+    except one entry right of the diagonal in each row from a on. Givens rotations of
+    neighbouring columns (an orthogonal factor between L' and L'^T) remove those entries from
+    the left, leaving a triangular factor with a positive diagonal and a zero last column.
+    Refactoring Y'Y instead costs O(nW^2 n)."""
+    for i in range(a, nW - 1):
+        for k in range(i + 2):
+            Ls[i, k] = Ls[i + 1, k]
+    for k in range(a, nW - 1):
+        x = Ls[k, k]
+        y = Ls[k, k + 1]
+        r = math.hypot(x, y)
+        if r == 0.0:
+            continue
+        c = x / r
+        s = y / r
+        for i in range(k, nW - 1):
+            lk = Ls[i, k]
+            lk1 = Ls[i, k + 1]
+            Ls[i, k] = c * lk + s * lk1
+            Ls[i, k + 1] = c * lk1 - s * lk
+        Ls[k, k + 1] = 0.0
+    for i in range(nW):
+        Ls[i, nW - 1] = 0.0
+        Ls[nW - 1, i] = 0.0
 
 
 @njit(cache=True)
@@ -823,9 +843,8 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
             W[a] = W[a + 1]
             for i in range(n):
                 Y[i, a] = Y[i, a + 1]
+        _ws_delete(Ls, nW, worst)
         nW -= 1
-        if not _ws_refactor(Y, Ls, nW, n, Sm):
-            return 1, 0
     return 1, nW
 
 
