@@ -99,3 +99,52 @@ def test_a_lost_map_tasks_request_is_asked_again():
         for n in nodes:
             n.destroy_node()
         rclpy.try_shutdown()
+
+
+def test_a_world_without_map_tasks_is_taken_to_offer_every_task():
+    """Another simulator behind the same services (scenario.* parameters, ~/reset) that declares
+    no map_tasks: the curriculum asks it for every task, each arm its own."""
+    from std_srvs.srv import Trigger
+
+    from bimacppo_curriculum.ros.curriculum_node import CurriculumNode
+
+    rclpy.init()
+    ex = SingleThreadedExecutor()
+    nodes = []
+    try:
+        other = Node("other_world")
+        other.declare_parameter("scenario.n_sv", 0)
+        other.declare_parameter("scenario.task", "straight")
+        other.declare_parameter("scenario.seed", 0)
+        resets = []
+
+        def reset(_req, resp):
+            resets.append(other.get_parameter("scenario.task").value)
+            resp.success, resp.message = True, "ok"
+            return resp
+
+        other.create_service(Trigger, "~/reset", reset)
+        cur = CurriculumNode(parameter_overrides=[Parameter("episodes", value=0), Parameter("seed", value=3),
+                                                  Parameter("world_node", value="other_world"),
+                                                  Parameter("retry_period_s", value=0.05)])
+        user = Node("curriculum_user")
+        nxt = user.create_client(Trigger, "/curriculum/next")
+        nodes = [other, cur, user]
+        for n in nodes:
+            ex.add_node(n)
+        arms = []
+        t_end = time.monotonic() + 20.0
+        while len(arms) < 9 and time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.02)
+            if cur.current is not None and (not arms or arms[-1][0] != cur.current):
+                arms.append((cur.current, resets[-1]))
+                fut = nxt.call_async(Trigger.Request())
+                while not fut.done() and time.monotonic() < t_end:
+                    ex.spin_once(timeout_sec=0.02)
+        assert cur.world_tasks == TASKS and len(arms) == 9
+        assert all(TASKS[j] == task == asked for (i, j, seed, task), asked in arms), arms
+        assert len({asked for _, asked in arms}) >= 2
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()

@@ -151,14 +151,16 @@ class CurriculumNode(Node):
         return True
 
     def _after_tasks(self, fut) -> None:
-        """The world's map_tasks: a string array of tasks, or not declared (all three)."""
+        """The world's map_tasks: a string array of tasks, or not declared (all three). An
+        undeclared name comes back as no value (rclpy) or as a value of type NOT_SET (rclcpp)."""
         self._asking = False
         try:
-            value = fut.result().values[0]
+            values = fut.result().values
         except Exception as exc:  # noqa: BLE001 - a failed call is retried by the timer
             self.get_logger().error(f"reading the world's map_tasks failed: {exc}")
             return
-        if value.type == ParameterType.PARAMETER_NOT_SET:
+        value = values[0] if len(values) else None
+        if value is None or value.type == ParameterType.PARAMETER_NOT_SET:
             self.world_tasks = TASKS
         else:
             offered = list(value.string_array_value) if value.type == ParameterType.PARAMETER_STRING_ARRAY else []
