@@ -79,7 +79,7 @@ class IntersectionBatch:
         self.ctrl = make_controller(mpc_config or MPCConfig.load(), solver=mpc_solver)
         self.max_sv_map = int(self.worlds[0].max_sv)
         self.max_sv = min(self.cfg.observation.max_sv, self.max_sv_map)
-        self.tasks = tuple(tasks) if tasks is not None else tuple(t for t in TASKS if t in self.road.turns)
+        self.tasks = tuple(tasks) if tasks is not None else self.road.tasks
         self.slow_svs = int(slow_svs)
         self.obs_dim = self.cfg.obs_dim
         self.nvec = self.cfg.nvec

@@ -337,7 +337,7 @@ def train_main(argv=None) -> int:
     env_fn = make_env(args.map, env_cfg, args.mpc, args.slow_svs, mpc_config=mpc_cfg, world_config=world_cfg)
     from bimacppo_sim import load_map
 
-    tasks = sorted(load_map(args.map).turns)
+    tasks = list(load_map(args.map).tasks)
     if len(tasks) < 3:
         print(f"bimacppo-train: map {args.map!r} has only the task(s) {tasks}: the curriculum's task "
               "arms all run as that task (its arm statistics are then not meaningful)", file=sys.stderr)

@@ -367,19 +367,20 @@ def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn):
         S[k + 1, 3, 2 * k + 1] = dt * 2.0 * v / L * math.cos(d)
     # gradient and costates lam[k] = d(cost of x_k..x_N)/dx_k
     gradient(x0, z, xref, uprev, P, X, lam, g)
+    Pn = np.empty((4, 4))
+    A = np.empty((4, 4))
+    B = np.empty((4, 2))
+    PA = np.empty((4, 4))
+    PB = np.empty((4, 2))
+    Kx = np.empty((4, 2))
     passes = 2 if exact else 1
     for ps in range(passes):
         # pass 0: the Hessian asked for (exact or Gauss-Newton) into H; pass 1: Gauss-Newton into Hgn
         curv = exact and ps == 0
         Hm = H if ps == 0 else Hgn
-        Pn = np.zeros((4, 4))
+        Pn[:, :] = 0.0
         for i in range(4):
             Pn[i, i] = 2.0 * P[P_QX + i]
-        A = np.empty((4, 4))
-        B = np.empty((4, 2))
-        PA = np.empty((4, 4))
-        PB = np.empty((4, 2))
-        Kx = np.empty((4, 2))
         for k in range(N - 1, -1, -1):
             v = X[k, 2]
             psi = X[k, 3]
@@ -489,9 +490,9 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, 
     G_W' lamW (the KKT residual under the multipliers of the QP just solved) and decrease
     1/2 |(I - Y (Y'Y)^-1 Y') Lh^-1 r|^2, where Lh and Y (= Lh^-1 G_W') are the factors of the
     previous iterate's Hessian: after a full Newton step the two Hessians differ by the order
-    of the step, so the estimate must be under _EARLY_STOP_MARGIN times the tolerance. The working set must
-    still be active at z, and the updated multipliers non-negative (the QP's own test), or
-    the next QP would move its working set. When the test holds, the next iteration would
+    of the step, so the estimate must be under _EARLY_STOP_MARGIN times the tolerance. The
+    working set must still be active at z, and the updated multipliers non-negative (the QP's
+    own test), or the next QP would move its working set. When the test holds, the next iteration would
     return z unchanged: the result is the same, one derivative evaluation, convexification
     and QP earlier."""
     n = z.size
@@ -500,6 +501,8 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, 
     q = ws[2]
     tmp = ws[3]
     y = ws[4]
+    r = ws[5]
+    dlam = ws[6]
     gradient(x0, z, xref, uprev, P, X, lam, g)
     slacks(z, h, P[P_DT], b)
     gnorm = 1.0
@@ -515,6 +518,21 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, 
         for i in range(n):
             g[i] += la * row[i]
     fwd_solve(Lh, g, q, n)
+    _project_off(q, Y, Ls, nW, n, tmp, y, dlam, r)
+    for a in range(nW):
+        # the multipliers the next QP would find: lamW + its correction
+        if lamW[a] + dlam[a] < -1e-11 * gnorm:
+            return False
+    pred = 0.0
+    for i in range(n):
+        pred += r[i] * r[i]
+    return 0.5 * pred <= _EARLY_STOP_MARGIN * tol * (1.0 + J)
+
+
+@njit(cache=True)
+def _project_off(q, Y, Ls, nW, n, tmp, y, lam, r):
+    """lam = -(Y'Y)^-1 Y'q and r = q + Y lam: q with its part in the span of the working set's
+    solved rows Y (factor Ls of Y'Y) removed, and the multipliers that remove it."""
     for a in range(nW):
         t = 0.0
         for i in range(n):
@@ -522,18 +540,14 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, 
         tmp[a] = t
     if nW > 0:
         fwd_solve(Ls, tmp, y, nW)
-        bwd_solve(Ls, y, tmp, nW)
+        bwd_solve(Ls, y, lam, nW)
     for a in range(nW):
-        # the multipliers the next QP would find: lamW + its correction -(Y'Y)^-1 Y'q
-        if lamW[a] - tmp[a] < -1e-11 * gnorm:
-            return False
-    pred = 0.0
+        lam[a] = -lam[a]
     for i in range(n):
         t = q[i]
         for a in range(nW):
-            t -= Y[i, a] * tmp[a]
-        pred += t * t
-    return 0.5 * pred <= _EARLY_STOP_MARGIN * tol * (1.0 + J)
+            t += Y[i, a] * lam[a]
+        r[i] = t
 
 
 @njit(cache=True)
@@ -763,21 +777,7 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
         for i in range(n):
             q[i] = w[i] + qg[i]
         # lam = -S^{-1} Y' q ; r = q + Y lam ; s = -Lh^{-T} r
-        for a in range(nW):
-            t = 0.0
-            for i in range(n):
-                t += Y[i, a] * q[i]
-            tmp[a] = t
-        if nW > 0:
-            fwd_solve(Ls, tmp, y, nW)
-            bwd_solve(Ls, y, lam, nW)
-        for a in range(nW):
-            lam[a] = -lam[a]
-        for i in range(n):
-            t = q[i]
-            for a in range(nW):
-                t += Y[i, a] * lam[a]
-            r[i] = t
+        _project_off(q, Y, Ls, nW, n, tmp, y, lam, r)
         bwd_solve(Lh, r, s, n)
         for i in range(n):
             s[i] = -s[i]

@@ -500,6 +500,11 @@ class RoadMap:
                 total += self.connector_conflicts(ce, f"{sv_arm}_in_{i}>{self.exit_arm(sv_arm, m)}_out_{j}")
         return total
 
+    @property
+    def tasks(self) -> tuple:
+        """The tasks the map offers, in TASKS order (a straight road: "straight" only)."""
+        return tuple(t for t in TASKS if t in self.turns)
+
     def infer_n_pcp(self, ev_start_xy, goal_xy, sv_tracks) -> int | None:
         """N_pcp of an episode from what a receiver of the states sees (map frame of this
         road): the EV's connector from its lane at the start (``ev_start_xy``) and the task

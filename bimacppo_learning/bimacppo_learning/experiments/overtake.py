@@ -128,7 +128,7 @@ def overtake_test(cfg: ExperimentConfig, policy_path: Path) -> dict:
 
     o = cfg.overtake
     road = load_map(o.map)
-    j = next(i for i, t in enumerate(TASKS) if t in road.turns)   # the road's first task, as the env picks it
+    j = TASKS.index(road.tasks[0])   # the road's first task, as the env picks it
     [cell] = evaluate(policy_path, o.map, (o.test_n_sv,), (j,), o.test_episodes, workers=1,
                       mpc_solver=cfg.train.mpc, random_row=False, seed_set="test", slow_svs=o.n_slow_max)
     slow = Counter(draw_n_slow(eval_seed(j, o.test_n_sv, k), o.test_n_sv, o.n_slow_max)

@@ -88,7 +88,7 @@ class WorldNode(Node):
                               f"{one_line(exc)}") from None
         # the tasks the map offers, in TASKS order: a client (the curriculum) reads them and runs
         # each arm's task through conventions.task_on_map; the world refuses any other task
-        self.tasks = tuple(t for t in TASKS if t in road.turns)
+        self.tasks = road.tasks
         offered = declare(self, "map_tasks", list(self.tasks), "tasks the map offers (set from map_id; a "
                                                                  "curriculum reads it)")
         if tuple(offered) != self.tasks:
