@@ -13,7 +13,11 @@ again by whether the EV starts in a lane at the road's edge, with how often A3 a
 that is not there (a side without an SV is a free lane or no lane at all). Its collisions with SVs
 are split by where the SV was at the collision (`collision_kind`): ahead in the EV's lane (a
 rear-end collision, with a slow SV or a normal one) or elsewhere (beside or behind: a lane change
-into it, or hit from behind), with the EV's speed.
+into it, or hit from behind), with the EV's speed. Last, per outcome, how many scenarios had a
+decision begin with the EV closing on the SV ahead in its lane faster than it could stop behind
+it (`bimacppo_sim.drivers.closing_on_lead`, the test the headway price pays on), and for the
+collisions how many decisions before the end the first such decision came: whether that price
+would reach the decisions that lead to the failures without charging the successes.
 
     python scripts/overtaking_lanes.py --seed-set validation --episodes 100
     python scripts/overtaking_lanes.py runs/overtake/policy.pt --seed-set validation --action median
@@ -31,6 +35,8 @@ from bimacppo_learning.evaluate import SEED_SETS, eval_seed
 from bimacppo_planner.decision import lanes_beside
 from bimacppo_planner.policy import ACTION_SELECTIONS
 from bimacppo_sim import Scenario, World, load_map
+from bimacppo_sim.config import DriverConfig
+from bimacppo_sim.drivers import closing_on_lead
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from failure_causes import CAUSES, cause_of  # noqa: E402  (a sibling script: the one split of outcomes)
@@ -88,16 +94,24 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
     ``episodes_out`` one record per scenario is appended to it: distance, whether the EV starts at
     the road's edge (``at_edge``), outcome, how many decisions asked A3 for a lane that is not
     there (the side ``lanes_beside`` counts none on, on the map the decoding walks) and, for a
-    collision with an SV, its ``collision_kind`` and the EV's speed then."""
+    collision with an SV, its ``collision_kind`` and the EV's speed then; ``closing``, how many
+    decisions began with ``closing_on_lead`` true (the headway price's test, drivers.yaml's
+    braking), and ``first_closing_before_end``, how many decisions before the end the first of
+    them came (None without one)."""
     out: dict = {}
     sides = env.cfg.action.lane_change
+    drivers = DriverConfig.load()
     for k in range(episodes):
         seed = eval_seed(TASK, N_SV, k, seed_set)
         obs, _ = env.reset(options={"n_sv": N_SV, "task": TASK, "scenario_seed": seed,
                                     "n_slow": draw_n_slow(seed, N_SV, slow_max)})
         d, edge, missing = free_lane_distance(env.world), at_edge(env.world), 0
-        done = False
+        closing: list[int] = []         # the decisions that began closing on the lead too fast
+        t, done = 0, False
         while not done:
+            if closing_on_lead(env.world, drivers):
+                closing.append(t)
+            t += 1
             a = act(env, obs)
             side = sides[int(a[2])]
             if side != 0:
@@ -108,7 +122,8 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
         cause = cause_of(info)
         out.setdefault(d, Counter())[cause] += 1
         if episodes_out is not None:
-            rec = {"distance": d, "edge": edge, "outcome": cause, "a3_no_lane": missing}
+            rec = {"distance": d, "edge": edge, "outcome": cause, "a3_no_lane": missing,
+                   "closing": len(closing), "first_closing_before_end": t - closing[0] if closing else None}
             if cause == "sv collision":
                 rec["kind"] = collision_kind(env.world, info["collided_with"])
                 rec["ev_speed"] = float(env.world.ego_tuple()[2])
@@ -169,6 +184,21 @@ def collisions_markdown(records: list) -> str:
     return "\n".join(lines)
 
 
+def closing_markdown(records: list) -> str:
+    """Per outcome: scenarios, those with a decision that began closing on the lead too fast to
+    stop (``closing_on_lead``), and how many decisions before the end the first of them came."""
+    lines = ["| outcome | scenarios | with a closing decision | first one, decisions before the end |",
+             "|---|---|---|---|"]
+    for cause in CAUSES:
+        sel = [r for r in records if r["outcome"] == cause]
+        if not sel:
+            continue
+        lead = [r["first_closing_before_end"] for r in sel if r["closing"]]
+        span = f"{min(lead)}-{max(lead)}" if lead else "-"
+        lines.append(f"| {cause} | {len(sel)} | {len(lead)} | {span} |")
+    return "\n".join(lines)
+
+
 def by_distance_markdown(by: dict) -> str:
     """The outcome table of ``run_by_distance``, one row per distance and a total."""
     lines = ["| distance | scenarios | " + " | ".join(CAUSES) + " |", "|---|---|" + "---|" * len(CAUSES)]
@@ -209,6 +239,9 @@ def main(argv=None) -> int:
         print(by_start_lane_markdown(records))
         print("\ncollisions with SVs by where the SV was (EV speed at the collision)\n")
         print(collisions_markdown(records))
+        print("\nscenarios with a decision closing on the lead faster than the EV can stop behind it "
+              "(the headway price's test)\n")
+        print(closing_markdown(records))
     return 0
 
 

@@ -174,3 +174,25 @@ def test_the_probe_can_decide_one_part_of_a_policys_actions(capsys):
     ev = EnvConfig.load(overrides={"action": {"lane_change_from": "ev"}})
     with pytest.raises(ValueError, match="KeepLane: decodes lane changes from the 'ev' lane"):
         probe.run_with_policy(KeepLane(), "lane", "validation", 1, env_config=ev)
+
+
+def test_the_headway_test_is_counted_per_scenario_and_flags_a_rear_end_collision_before_it():
+    """Keeping the lane at 8 m/s rear-ends the slow SVs of the scenarios whose own lane is
+    blocked: each such collision had a decision that began closing on the lead too fast to stop
+    (``closing_on_lead``) at least one decision before it; the per-outcome table counts every
+    scenario once."""
+    import numpy as np
+
+    class KeepLane:
+        def act(self, obs):
+            return np.array([4, 4, 1])
+    script = load_script("overtaking_lanes")
+    records: list = []
+    script.outcomes_by_distance(KeepLane(), "validation", 12, episodes_out=records)
+    rear = [r for r in records if r.get("kind") == "rear-end, slow SV"]
+    assert rear, [r["outcome"] for r in records]
+    assert all(r["closing"] > 0 and r["first_closing_before_end"] >= 1 for r in rear)
+    assert all((r["closing"] == 0) == (r["first_closing_before_end"] is None) for r in records)
+    table = script.closing_markdown(records)
+    counted = sum(int(line.split("|")[2]) for line in table.splitlines()[2:])
+    assert counted == len(records)
