@@ -106,11 +106,12 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
         obs, _ = env.reset(options={"n_sv": N_SV, "task": TASK, "scenario_seed": seed,
                                     "n_slow": draw_n_slow(seed, N_SV, slow_max)})
         d, edge, missing = free_lane_distance(env.world), at_edge(env.world), 0
-        closing: list[int] = []         # the decisions that began closing on the lead too fast
+        closing, first = 0, None        # decisions that began closing on the lead too fast; the first
         t, done = 0, False
         while not done:
             if closing_on_lead(env.world, drivers):
-                closing.append(t)
+                closing += 1
+                first = t if first is None else first
             t += 1
             a = act(env, obs)
             side = sides[int(a[2])]
@@ -123,7 +124,7 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
         out.setdefault(d, Counter())[cause] += 1
         if episodes_out is not None:
             rec = {"distance": d, "edge": edge, "outcome": cause, "a3_no_lane": missing,
-                   "closing": len(closing), "first_closing_before_end": t - closing[0] if closing else None}
+                   "closing": closing, "first_closing_before_end": None if first is None else t - first}
             if cause == "sv collision":
                 rec["kind"] = collision_kind(env.world, info["collided_with"])
                 rec["ev_speed"] = float(env.world.ego_tuple()[2])

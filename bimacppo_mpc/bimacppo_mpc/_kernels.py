@@ -61,6 +61,7 @@ _ARMIJO = 1e-4           # sufficient-decrease constant of the backtracking line
 _BACKTRACK = 0.5
 _MIN_STEP = 1e-10
 _EPS_ACTIVE = 1e-12      # constraint slack below this is treated as zero (active)
+_EPS_LAM = 1e-11         # a working-set multiplier below -_EPS_LAM * max(1, |g|_inf) is negative
 _MIN_PIVOT = 1e-6        # Hessian pivots below this (relative to max |H_ii|) count as singular
 _RHO_TRIES = 4           # active-constraint curvature rho = max|H_ii| * _RHO_GROWTH^t, t < _RHO_TRIES
 _RHO_GROWTH = 10.0
@@ -492,9 +493,9 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, 
     previous iterate's Hessian: after a full Newton step the two Hessians differ by the order
     of the step, so the estimate must be under _EARLY_STOP_MARGIN times the tolerance. The
     working set must still be active at z, and the updated multipliers non-negative (the QP's
-    own test), or the next QP would move its working set. When the test holds, the next iteration would
-    return z unchanged: the result is the same, one derivative evaluation, convexification
-    and QP earlier."""
+    own test), or the next QP would move its working set. When the test holds, the next
+    iteration would return z unchanged: the result is the same, one derivative evaluation,
+    convexification and QP earlier."""
     n = z.size
     g = ws[0]
     b = ws[1]
@@ -521,7 +522,7 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, 
     _project_off(q, Y, Ls, nW, n, tmp, y, dlam, r)
     for a in range(nW):
         # the multipliers the next QP would find: lamW + its correction
-        if lamW[a] + dlam[a] < -1e-11 * gnorm:
+        if lamW[a] + dlam[a] < -_EPS_LAM * gnorm:
             return False
     pred = 0.0
     for i in range(n):
@@ -829,7 +830,7 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
             continue
         # full step: p is the working-set optimum, lam its multipliers
         worst = -1
-        wval = -1e-11 * gnorm
+        wval = -_EPS_LAM * gnorm
         for a in range(nW):
             if lam[a] < wval:
                 wval = lam[a]
