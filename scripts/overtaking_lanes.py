@@ -17,7 +17,10 @@ into it, or hit from behind), with the EV's speed. Last, per outcome, how many s
 decision begin with the EV closing on the SV ahead in its lane faster than it could stop behind
 it (`bimacppo_sim.drivers.closing_on_lead`, the test the headway price pays on), and for the
 collisions how many decisions before the end the first such decision came: whether that price
-would reach the decisions that lead to the failures without charging the successes.
+would reach the decisions that lead to the failures without charging the successes. And per
+outcome, how many scenarios had a lane-change reversal: a lane change taken (the decoding's
+`lane_change`) within ``REVERSAL_WINDOW`` decisions of one to the other side, before the first
+can have been driven (the EV weaving between lanes).
 
     python scripts/overtaking_lanes.py --seed-set validation --episodes 100
     python scripts/overtaking_lanes.py runs/overtake/policy.pt --seed-set validation --action median
@@ -72,6 +75,9 @@ def at_edge(world: World) -> bool:
 
 
 KINDS = ("rear-end, slow SV", "rear-end, normal SV", "beside or behind")
+#: decisions within which a lane change to the other side reverses the last one: 2.1 s at the
+#: 0.3 s decisions, about the time the NMPC takes to drive one lane change
+REVERSAL_WINDOW = 7
 
 
 def collision_kind(world: World, sv_id: str) -> str:
@@ -97,7 +103,8 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
     collision with an SV, its ``collision_kind`` and the EV's speed then; ``closing``, how many
     decisions began with ``closing_on_lead`` true (the headway price's test, drivers.yaml's
     braking), and ``first_closing_before_end``, how many decisions before the end the first of
-    them came (None without one)."""
+    them came (None without one); ``reversals``, how many lane changes were taken to the other side
+    within ``REVERSAL_WINDOW`` decisions of the previous one."""
     out: dict = {}
     sides = env.cfg.action.lane_change
     drivers = DriverConfig.load()
@@ -107,6 +114,7 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
                                     "n_slow": draw_n_slow(seed, N_SV, slow_max)})
         d, edge, missing = free_lane_distance(env.world), at_edge(env.world), 0
         closing, first = 0, None        # decisions that began closing on the lead too fast; the first
+        last_change, reversals = None, 0     # (decision, side) of the last lane change taken
         t, done = 0, False
         while not done:
             if closing_on_lead(env.world, drivers):
@@ -120,11 +128,16 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
                 missing += lanes_beside(env.world.road, x, y, psi)[0 if side < 0 else 1] == 0
             obs, _, term, trunc, info = env.step(a)
             done = term or trunc
+            if info["lane_change"]:
+                if last_change is not None and last_change[1] != side and t - last_change[0] <= REVERSAL_WINDOW:
+                    reversals += 1
+                last_change = (t, side)
         cause = cause_of(info)
         out.setdefault(d, Counter())[cause] += 1
         if episodes_out is not None:
             rec = {"distance": d, "edge": edge, "outcome": cause, "a3_no_lane": missing,
-                   "closing": closing, "first_closing_before_end": None if first is None else t - first}
+                   "closing": closing, "first_closing_before_end": None if first is None else t - first,
+                   "reversals": reversals}
             if cause == "sv collision":
                 rec["kind"] = collision_kind(env.world, info["collided_with"])
                 rec["ev_speed"] = float(env.world.ego_tuple()[2])
@@ -150,9 +163,9 @@ def policy_driver(policy, action: str | None = None, mpc_config=None, env_config
 
 
 def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2, action: str | None = None,
-                         mpc_config=None, episodes_out: list | None = None) -> dict:
+                         mpc_config=None, episodes_out: list | None = None, env_config=None) -> dict:
     """``run_by_distance`` for ``policy`` (``policy_driver``)."""
-    env, act = policy_driver(policy, action, mpc_config)
+    env, act = policy_driver(policy, action, mpc_config, env_config)
     try:
         return run_by_distance(env, act, seed_set, episodes, slow_max, episodes_out)
     finally:
@@ -200,6 +213,18 @@ def closing_markdown(records: list) -> str:
     return "\n".join(lines)
 
 
+def reversals_markdown(records: list) -> str:
+    """Per outcome: scenarios, and those with a lane-change reversal (``reversals``) and how many."""
+    lines = [f"| outcome | scenarios | with a reversal (a change to the other side within {REVERSAL_WINDOW} "
+             "decisions) | reversals |", "|---|---|---|---|"]
+    for cause in CAUSES:
+        sel = [r for r in records if r["outcome"] == cause]
+        if sel:
+            lines.append(f"| {cause} | {len(sel)} | {sum(r['reversals'] > 0 for r in sel)} | "
+                         f"{sum(r['reversals'] for r in sel)} |")
+    return "\n".join(lines)
+
+
 def by_distance_markdown(by: dict) -> str:
     """The outcome table of ``run_by_distance``, one row per distance and a total."""
     lines = ["| distance | scenarios | " + " | ".join(CAUSES) + " |", "|---|---|" + "---|" * len(CAUSES)]
@@ -218,6 +243,9 @@ def main(argv=None) -> int:
     p.add_argument("--action", choices=ACTION_SELECTIONS, default=None,
                    help="how the policy picks each head's action (default: the way its file records)")
     p.add_argument("--mpc-config", default=None, help="NMPC config (default: the one the policy records)")
+    p.add_argument("--env-config", default=None,
+                   help="env config YAML to run the policy in (default: the one it records), e.g. to try a "
+                        "decoding variant on a trained policy; the observation and the action heads must match")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--slow-svs", type=int, default=2, help="at most this many slow SVs per scenario (protocol: 2)")
     args = p.parse_args(argv)
@@ -231,9 +259,15 @@ def main(argv=None) -> int:
     for d in sorted(c):
         print(f"  {d}: {c[d]} scenarios ({100.0 * c[d] / args.episodes:.0f} %)")
     if args.policy is not None:
+        from bimacppo_common.config import ConfigError
+        from bimacppo_learning.evaluate import EvaluationError
+        from bimacppo_planner.policy import CheckpointError
         records: list = []
-        by = outcomes_by_distance(args.policy, args.seed_set, args.episodes, args.slow_svs, args.action,
-                                  args.mpc_config, records)
+        try:
+            by = outcomes_by_distance(args.policy, args.seed_set, args.episodes, args.slow_svs, args.action,
+                                      args.mpc_config, records, args.env_config)
+        except (ConfigError, EvaluationError, CheckpointError) as exc:
+            p.error(str(exc))
         print(f"\n{args.policy}, {args.action or 'recorded'} actions: outcomes by distance\n")
         print(by_distance_markdown(by))
         print("\nby start lane (edge: a lane with no lane beside it on one side)\n")
@@ -243,6 +277,8 @@ def main(argv=None) -> int:
         print("\nscenarios with a decision closing on the lead faster than the EV can stop behind it "
               "(the headway price's test)\n")
         print(closing_markdown(records))
+        print("\nlane-change reversals (the EV weaving between lanes)\n")
+        print(reversals_markdown(records))
     return 0
 
 

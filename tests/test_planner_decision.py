@@ -845,6 +845,58 @@ def test_two_right_changes_reach_the_far_lane_only_from_the_evs_or_the_chosen_la
     assert all(abs(a - b) <= 0.15 for k in want for a, b in zip(ends[k], want[k])), ends
 
 
+def test_lane_change_commit_holds_a3_until_the_ev_is_near_the_chosen_lanes_centre():
+    """Route lane 0 (leftmost) of the three-lane road, changes counted from the chosen lane, the
+    commitment at 1 m. With the EV in the chosen lane, a right moves the chosen lane (as without
+    the commitment); while the EV is more than 1 m across from the new lane's centre, a left or a
+    second right reads "keep" (not a change, the chosen lane stays); once it is within 1 m, A3
+    counts again. Off (null, the default): the second decision reverses the change at once.
+    Holding only reversals: a change back is held, one onwards to the lane two over counts at
+    once. The commitment needs the EV pose."""
+    base = dataclasses_replace(EnvConfig.load(REPO_ENV_JUNCTION).action, lane_change_from="chosen")
+    commit = dataclasses_replace(base, lane_change_commit=1.0)
+    keep, right, left = 1, 2, 0
+    w = 3.5
+    script = [  # (EV's offset right of the route lane, A3) -> chosen lane, changed; committed, then off
+        (0.0, right, (1, True), (1, True)),
+        (0.3 * w, left, (1, False), (0, True)),
+        (0.6 * w, right, (1, False), (1, True)),
+        (0.75 * w, keep, (1, False), (1, False)),
+        (w - 0.9, right, (2, True), (2, True)),
+        (w, left, (2, False), (1, True)),
+    ]
+    for acfg, col in ((commit, 2), (base, 3)):
+        road, tr, x0, y0, psi = _three_lane_tracker(acfg)
+        for step in script:
+            ego = np.array([x0 + step[0], y0 + 20.0, 6.0, psi])
+            tr.update(ego[0], ego[1])
+            got, changed = decode_action([4, 3, step[1]], tr, acfg, road.lateral_point, ego, road.drivable)
+            lane, want_changed = step[col]
+            assert tr.lane == lane and changed == want_changed, (acfg.lane_change_commit, step)
+            assert got[0] == pytest.approx(x0 + lane * w), (acfg.lane_change_commit, step)
+    reversals = dataclasses_replace(commit, lane_change_commit_holds="reversals")
+    road, tr, x0, y0, psi = _three_lane_tracker(reversals)
+    for off, a3, lane, want_changed in ((0.0, right, 1, True), (0.3 * w, left, 1, False), (0.3 * w, right, 2, True),
+                                        (0.5 * w, left, 2, False), (2 * w - 0.5, left, 1, True)):
+        ego = np.array([x0 + off, y0 + 20.0, 6.0, psi])
+        tr.update(ego[0], ego[1])
+        got, changed = decode_action([4, 3, a3], tr, reversals, road.lateral_point, ego, road.drivable)
+        assert tr.lane == lane and changed == want_changed and got[0] == pytest.approx(x0 + lane * w), (off, a3)
+    road, tr, *_ = _three_lane_tracker(commit)
+    with pytest.raises(ValueError, match="ego"):
+        decode_action([4, 3, right], tr, dataclasses_replace(commit, chord_tol=None), road.lateral_point)
+
+
+def test_lane_change_commit_is_validated_and_off_by_default():
+    assert EnvConfig.load().action.lane_change_commit is None
+    chosen = {"action.lane_change_from": "chosen"}
+    assert EnvConfig.load(overrides={**chosen, "action.lane_change_commit": 0.8}).action.lane_change_commit == 0.8
+    with pytest.raises(ConfigError, match="lane_change_commit"):
+        EnvConfig.load(overrides={**chosen, "action.lane_change_commit": 0.0})
+    with pytest.raises(ConfigError, match=r"lane_change_commit.*needs lane_change_from: chosen, got 'ev'"):
+        EnvConfig.load(overrides={"action.lane_change_from": "ev", "action.lane_change_commit": 1.0})
+
+
 def test_reach_time_limits_a1_to_the_distance_a2s_speed_covers():
     """Straight route, EV at y = 0.5 so WP0..WP4 lie 2.5 .. 14.5 m ahead. Off (the default): A1
     picks its waypoint whatever A2. With reach_time 1.5 s: the farthest of WP0..WP_A1 no farther

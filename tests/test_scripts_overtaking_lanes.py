@@ -196,3 +196,60 @@ def test_the_headway_test_is_counted_per_scenario_and_flags_a_rear_end_collision
     table = script.closing_markdown(records)
     counted = sum(int(line.split("|")[2]) for line in table.splitlines()[2:])
     assert counted == len(records)
+
+
+def test_lane_change_reversals_are_counted_and_the_commitment_removes_most_of_them():
+    """A driver that asks right and left in turn at 4 m/s, lane changes counted from the chosen
+    lane: without the commitment every scenario that lasts a few decisions reverses a lane change
+    within the window; with it (action.lane_change_commit) a change is driven before the next one
+    counts, so far fewer changes are reversed. Keeping the lane reverses none. Each table counts
+    every scenario once."""
+    import numpy as np
+    from bimacppo_planner.decision import EnvConfig
+
+    class Weave:
+        def __init__(self):
+            self.k = 0
+
+        def act(self, obs):
+            self.k += 1
+            return np.array([4, 2, 2 if self.k % 2 else 0])
+
+    class KeepLane:
+        def act(self, obs):
+            return np.array([4, 2, 1])
+    script = load_script("overtaking_lanes")
+    n, counts = 6, {}
+    for name, driver, commit in (("keep", KeepLane(), None), ("weave", Weave(), None), ("commit", Weave(), 1.0)):
+        cfg = EnvConfig.load(overrides={"action": {"lane_change_from": "chosen", "lane_change_commit": commit}})
+        env, act = script.policy_driver(driver, env_config=cfg)
+        records: list = []
+        try:
+            script.run_by_distance(env, act, "validation", n, episodes_out=records)
+        finally:
+            env.close()
+        counts[name] = [r["reversals"] for r in records]
+        table = script.reversals_markdown(records)
+        assert sum(int(line.split("|")[2]) for line in table.splitlines()[2:]) == n
+    assert counts["keep"] == [0] * n
+    assert all(r >= 1 for r in counts["weave"]), counts
+    assert sum(counts["commit"]) < sum(counts["weave"]) / 3, counts
+
+
+def test_a_policy_runs_in_another_env_config_and_a_mismatch_is_one_usage_error(tmp_path, capsys):
+    """--env-config runs the policy under another decoding (the lane-change commitment here); an
+    env config whose observation the policy does not take, or a broken file, ends in one
+    ``error:`` line with exit code 2."""
+    from conftest import REPO
+    script = load_script("overtaking_lanes")
+    policy = str(REPO / "studies/policies/bimacppo_three_lane_overtake_leads.pt")
+    commit = str(REPO / "studies/config/env_wait_chord_junction_road_overtake_chosen_queue_leads_commit.yaml")
+    assert script.main([policy, "--episodes", "2", "--env-config", commit]) == 0
+    assert "lane-change reversals" in capsys.readouterr().out
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("action: [unclosed\n")
+    for cfg in (str(REPO / "bimacppo_planner/bimacppo_planner/config/env.yaml"), str(broken)):
+        with pytest.raises(SystemExit) as e:
+            script.main([policy, "--episodes", "2", "--env-config", cfg])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and "error:" in err and "Traceback" not in err, err

@@ -50,6 +50,9 @@ CHORD_STEP = 0.5
 #: which lane A3 counts from: the route's, the one the EV is in, or the one the episode's decisions
 #: have chosen so far (decode_action)
 LANE_CHANGE_FROM = ("route", "ev", "chosen")
+#: what action.lane_change_commit holds while a lane change is under way: every further change,
+#: or only one back towards the side the EV comes from (decode_action)
+COMMIT_HOLDS = ("all", "reversals")
 #: with action.reach_time, a waypoint this many times its lateral offset from the EV ahead stays
 #: allowed whatever the speed: the approach to it is then at most atan(1/3) = 18 deg off the
 #: road's heading, a lane change the NMPC completes without leaving the road (decode_action)
@@ -69,10 +72,14 @@ class ActionConfig:
     min_lookahead: float | None = setting(lo=0.0, lo_open=True)   # m; None: off (the paper), see env.yaml
     lane_change_from: str = setting(choices=LANE_CHANGE_FROM, absent="route")   # the lane A3 counts from, see env.yaml
     reach_time: float | None = setting(lo=0.0, lo_open=True, absent=None)   # s; None: off (the paper), see env.yaml
+    lane_change_commit: float | None = setting(lo=0.0, lo_open=True, absent=None)   # m; None: off (the paper), see env.yaml
+    lane_change_commit_holds: str = setting(choices=COMMIT_HOLDS, absent="all")   # what the commitment holds, see env.yaml
 
     def _check(self) -> None:
         if self.lane_change != (-1, 0, 1):
             raise invalid("lane_change", f"must be [-1, 0, 1] (left, keep, right), got {list(self.lane_change)}")
+        if self.lane_change_commit is not None and self.lane_change_from != "chosen":
+            raise invalid("lane_change_commit", f"needs lane_change_from: chosen, got {self.lane_change_from!r}")
 
 
 @config_class(ENV_YAML, "reward")
@@ -466,6 +473,11 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     start, clamped to the lanes beside the waypoint, so inside a junction it returns to the
     route): "keep" holds that lane, a change moves it one lane further and is remembered, so one
     decision commits a whole lane change. With either, two changes reach the lane two over.
+    With "chosen" and ``cfg.lane_change_commit`` set, A3 reads "keep" while the EV's offset from
+    its route lies farther than that from the chosen lane's centre: a change is driven to its end
+    before the next one counts, so decisions 0.3 s apart cannot weave the car between lanes; with
+    ``cfg.lane_change_commit_holds`` "reversals" only a change back to the side the EV comes from
+    is held, and a second change onwards, to the lane two over, counts at once.
     With ``cfg.zero_speed == "hold"`` a zero speed (A2 = 0 m/s) means "stop, facing along the
     route", whatever A1 and A3 say: x_IMR is at 0 m/s with the route's heading, at the EV's own
     position (``ego`` = [x, y, v, psi]; ``cfg.hold_decel`` None) or, with ``cfg.hold_decel`` set,
@@ -508,9 +520,11 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
     side = cfg.lane_change[a3]
     chosen = cfg.lane_change_from == "chosen"
     from_ev = cfg.lane_change_from == "ev"
-    if from_ev:
+    commit = cfg.lane_change_commit if chosen else None
+    if from_ev or commit is not None:
         if ego is None:
-            raise ValueError("action.lane_change_from 'ev' needs the EV pose (ego) to decode a lane change")
+            what = "lane_change_from 'ev'" if from_ev else "lane_change_commit"
+            raise ValueError(f"action.{what} needs the EV pose (ego) to decode a lane change")
         _, px, py = tracker.station(float(ego[0]), float(ego[1]))
         rpsi = tracker.heading_here()
         # the EV's signed offset from its route, left positive: the lane it is in is the one
@@ -532,6 +546,12 @@ def decode_action(action, tracker: WaypointTracker, cfg: ActionConfig, lateral_p
             lanes = lanes_across(lateral_point, wx, wy, wpsi)
             if chosen:
                 here = min(max(tracker.lane, min(lanes)), max(lanes))
+                if commit is not None and abs(ev_off - lanes[here][3]) > commit:
+                    # the last change is still under way: it finishes first ("all"), or at least
+                    # is not reversed ("reversals"; lanes to the right lie at lower offsets)
+                    under_way = 1 if lanes[here][3] < ev_off else -1
+                    if cfg.lane_change_commit_holds == "all" or side == -under_way:
+                        side = 0
             else:
                 here = min(lanes, key=lambda n: abs(lanes[n][3] - ev_off))
             there = here + int(side)
