@@ -24,6 +24,7 @@ can have been driven (the EV weaving between lanes).
 
     python scripts/overtaking_lanes.py --seed-set validation --episodes 100
     python scripts/overtaking_lanes.py runs/overtake/policy.pt --seed-set validation --action median
+    python scripts/overtaking_lanes.py runs/overtake/policy.pt --env-config studies/config/<variant>.yaml
 """
 from __future__ import annotations
 
