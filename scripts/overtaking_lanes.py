@@ -34,10 +34,11 @@ from collections import Counter
 import sys
 from pathlib import Path
 
+from bimacppo_common.config import ConfigError
 from bimacppo_learning.batch import draw_n_slow
-from bimacppo_learning.evaluate import SEED_SETS, eval_seed
+from bimacppo_learning.evaluate import SEED_SETS, EvaluationError, eval_seed
 from bimacppo_planner.decision import lanes_beside
-from bimacppo_planner.policy import ACTION_SELECTIONS
+from bimacppo_planner.policy import ACTION_SELECTIONS, CheckpointError
 from bimacppo_sim import Scenario, World, load_map
 from bimacppo_sim.config import DriverConfig
 from bimacppo_sim.drivers import closing_on_lead
@@ -260,9 +261,6 @@ def main(argv=None) -> int:
     for d in sorted(c):
         print(f"  {d}: {c[d]} scenarios ({100.0 * c[d] / args.episodes:.0f} %)")
     if args.policy is not None:
-        from bimacppo_common.config import ConfigError
-        from bimacppo_learning.evaluate import EvaluationError
-        from bimacppo_planner.policy import CheckpointError
         records: list = []
         try:
             by = outcomes_by_distance(args.policy, args.seed_set, args.episodes, args.slow_svs, args.action,
