@@ -187,7 +187,7 @@ def _qp_at(x0, xref, up, z, vlo, vhi, zlo, zhi, wk):
     J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H, Hgn)
     dmax = np.abs(np.diag(H)).max()
     if not K.cholesky(H, Lh, n, 1e-6 * dmax):
-        assert K.convexify(H, Lh, G, b, H0, dmax, Hgn)
+        assert K.convexify(H, Lh, G, b, H0, dmax, Hgn, np.empty_like(H))
     code, nW = K.qp_active_set(H, Lh, g, G, b, W, nW, 200, p, lamW, inW, Y, Ls, Sm, ws, starts)
     return J, -(g @ p + 0.5 * p @ H @ p), code, nW
 

@@ -874,7 +874,7 @@ def _shifted_cholesky(H, H0, Lh, tau, min_pivot):
 
 
 @njit(cache=True)
-def convexify(H, Lh, G, b, H0, dmax, Hgn):
+def convexify(H, Lh, G, b, H0, dmax, Hgn, Lspare):
     """Make H positive definite with the least change, keeping its negative curvature useful.
 
     1. rho * G_i' G_i for the constraints active at the current iterate: this leaves the
@@ -886,6 +886,10 @@ def convexify(H, Lh, G, b, H0, dmax, Hgn):
        leave saddle points (the straight-braking saddle between a left and a right swerve),
        which a Gauss-Newton or heavily damped step would converge to.
     3. If even that fails numerically, the Gauss-Newton Hessian (positive definite).
+
+    The bisection factors its trials into whichever of Lh and Lspare does not hold the factor of
+    the current upper end, so the factor of the shift it ends with is at hand, not computed again:
+    the same shift and the same factor as one more ``_shifted_cholesky`` at it. Lspare is scratch.
     """
     n = H.shape[0]
     min_pivot = _MIN_PIVOT * dmax
@@ -906,13 +910,24 @@ def convexify(H, Lh, G, b, H0, dmax, Hgn):
             H[:, :] = Hgn
             return cholesky(H, Lh, n, 0.0)
     lo = hi / _SHIFT_GROWTH
+    La = Lh           # holds the factor of H0 + hi I
+    Lb = Lspare       # the trials'
+    in_lh = True
     for _ in range(_SHIFT_BISECT):
         mid = math.sqrt(lo * hi)
-        if _shifted_cholesky(H, H0, Lh, mid, min_pivot):
+        if _shifted_cholesky(H, H0, Lb, mid, min_pivot):
             hi = mid
+            La, Lb = Lb, La
+            in_lh = not in_lh
         else:
             lo = mid
-    return _shifted_cholesky(H, H0, Lh, hi, min_pivot)
+    if not in_lh:
+        Lh[:, :] = La
+    for i in range(n):
+        for j in range(n):
+            H[i, j] = H0[i, j]
+        H[i, i] += hi
+    return True
 
 
 @njit(cache=True)
@@ -966,7 +981,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
         for i in range(n):
             dmax = max(dmax, abs(H[i, i]))
         if not cholesky(H, Lh, n, _MIN_PIVOT * dmax):
-            if not convexify(H, Lh, G, b, H0, dmax, Hgn):
+            if not convexify(H, Lh, G, b, H0, dmax, Hgn, Sm):
                 return ST_QP, J, it
         code, nW = qp_active_set(H, Lh, g, G, b, W, nW, qp_max_iter, p, lamW, inW, Y, Ls, Sm, ws, starts)
         gp = 0.0
