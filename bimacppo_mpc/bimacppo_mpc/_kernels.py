@@ -864,13 +864,19 @@ def _add_active_curvature(H, G, b, rho):
 
 
 @njit(cache=True)
-def _shifted_cholesky(H, H0, Lh, tau, min_pivot):
+def _shift(H, H0, tau):
+    """H = H0 + tau I."""
     n = H.shape[0]
     for i in range(n):
         for j in range(n):
             H[i, j] = H0[i, j]
         H[i, i] += tau
-    return cholesky(H, Lh, n, min_pivot)
+
+
+@njit(cache=True)
+def _shifted_cholesky(H, H0, Lh, tau, min_pivot):
+    _shift(H, H0, tau)
+    return cholesky(H, Lh, H.shape[0], min_pivot)
 
 
 @njit(cache=True)
@@ -923,10 +929,7 @@ def convexify(H, Lh, G, b, H0, dmax, Hgn, Lspare):
             lo = mid
     if not in_lh:
         Lh[:, :] = La
-    for i in range(n):
-        for j in range(n):
-            H[i, j] = H0[i, j]
-        H[i, i] += hi
+    _shift(H, H0, hi)
     return True
 
 
