@@ -107,3 +107,108 @@ def test_a_recorded_selection_is_how_planner_and_evaluation_run_the_file(policy,
     torch.save(blob, tmp_path / "bad.pt")
     with pytest.raises(CheckpointError, match="bad.pt.*action_selection 'sample'"):
         load_policy(tmp_path / "bad.pt")
+
+
+@pytest.fixture(scope="module")
+def members(tmp_path_factory):
+    """Three exports of one configuration (other seeds), recording the packaged env config."""
+    from bimacppo_planner.policy import Policy
+
+    cfg = EnvConfig.load()
+    d = tmp_path_factory.mktemp("members")
+    meta = {"env_config": cfg.to_dict(), "mpc": "fast", "map": "dual_lane_4way"}
+    paths = [export_policy(PPO(cfg.obs_dim, cfg.nvec, seed=s), d / f"s{s}.pt", meta={**meta, "seed": s})
+             for s in (5, 6, 7)]
+    return paths, [Policy.load(p) for p in paths]
+
+
+def test_an_ensemble_acts_on_the_mixture_of_its_members_distributions(members, tmp_path):
+    from bimacppo_learning.checkpoint import make_ensemble
+    from bimacppo_planner.policy import EnsemblePolicy
+
+    paths, pols = members
+    ens = load_policy(make_ensemble(paths, tmp_path / "e.pt", "median"))
+    assert isinstance(ens, EnsemblePolicy) and ens.selection == "median"
+    assert [m["seed"] for m in ens.meta["members"]] == [5, 6, 7] and ens.meta["map"] == "dual_lane_4way"
+    rng = np.random.default_rng(2)
+    member_disagrees = 0
+    for _ in range(200):
+        obs = rng.normal(size=ens.obs_dim) * 3
+        for h, z in enumerate(ens.logits(obs)):
+            probs = [np.exp(p.logits(obs)[h] - p.logits(obs)[h].max()) for p in pols]
+            mix = np.mean([q / q.sum() for q in probs], axis=0)
+            np.testing.assert_allclose(np.exp(z), mix, rtol=1e-5, atol=1e-7)
+        a = ens.act_median(obs)
+        np.testing.assert_array_equal(a, [head_median(np.log(np.mean(
+            [np.exp(p.logits(obs)[h]) / np.exp(p.logits(obs)[h]).sum() for p in pols], axis=0)))
+            for h in range(len(ens.nvec))])
+        z0 = ens.logits(obs)[0]
+        gap = min(np.abs(np.exp(z0) - np.exp(p.logits(obs)[0]) / np.exp(p.logits(obs)[0]).sum()).max()
+                  for p in pols)
+        member_disagrees += int(gap > 1e-6)
+    assert member_disagrees == 200           # the mixture is none of its members
+
+
+def test_an_ensemble_of_copies_acts_as_the_policy_and_runs_in_the_planner(members, tmp_path):
+    from bimacppo_learning.checkpoint import make_ensemble
+
+    paths, pols = members
+    twin = load_policy(make_ensemble([paths[0], paths[0]], tmp_path / "twin.pt", "argmax"))
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        obs = rng.normal(size=twin.obs_dim) * 3
+        np.testing.assert_array_equal(twin.act(obs), pols[0].act(obs))
+        np.testing.assert_array_equal(twin.act_median(obs), pols[0].act_median(obs))
+    from bimacppo_learning import evaluate as ev
+
+    cell = {"map_id": "dual_lane_4way", "n_svs": [2], "tasks": [1], "episodes": 2, "workers": 1,
+            "random_row": False}
+    as_file, as_member = (ev.evaluate(str(p), **cell, action_selection="argmax")
+                          for p in (tmp_path / "twin.pt", paths[0]))
+    assert [(c.counts, c.returns) for c in as_file] == [(c.counts, c.returns) for c in as_member]
+    ens = load_policy(make_ensemble(paths, tmp_path / "e.pt"))
+    env = IntersectionEnv()
+    hp = HighLevelPlanner(ens, env.road)
+    assert hp.action_selection == "median"
+    obs, _ = env.reset(options={"n_sv": 2, "task": "straight", "scenario_seed": 4})
+    hp.reset(env.world.ego, env.world.goal)
+    for _ in range(10):
+        x_imr, info = hp.step(env.world.ego, env.world.sv_states())
+        np.testing.assert_array_equal(info["action"], ens.act_median(obs))
+        obs, _, term, trunc, einfo = env.step(info["action"])
+        np.testing.assert_array_equal(einfo["x_imr"], x_imr)
+        if term or trunc:
+            break
+
+
+def test_an_ensemble_refuses_members_trained_otherwise_and_never_overwrites(members, tmp_path):
+    import torch
+
+    from bimacppo_learning.checkpoint import make_ensemble
+    from bimacppo_planner.policy import CheckpointError, EnsemblePolicy
+
+    paths, _ = members
+    cfg = EnvConfig.load()
+    other = export_policy(PPO(cfg.obs_dim, cfg.nvec, seed=8), tmp_path / "o.pt",
+                          meta={"env_config": {**cfg.to_dict(), "reward": {}}, "mpc": "fast", "map": "dual_lane_4way"})
+    with pytest.raises(CheckpointError, match="member 1 records another env_config"):
+        make_ensemble([paths[0], other], tmp_path / "x.pt")
+    small = export_policy(PPO(cfg.obs_dim - 1, cfg.nvec, seed=8), tmp_path / "small.pt")
+    with pytest.raises(CheckpointError, match="member 1 takes observations of size"):
+        make_ensemble([paths[0], small], tmp_path / "x.pt")
+    e = make_ensemble(paths[:2], tmp_path / "e.pt")
+    with pytest.raises(CheckpointError, match="is an ensemble"):
+        make_ensemble([paths[0], e], tmp_path / "x.pt")
+    with pytest.raises(FileExistsError, match="not overwritten"):
+        make_ensemble(paths, e)
+    (tmp_path / "junk.pt").write_bytes(b"junk")
+    with pytest.raises(CheckpointError, match="junk.pt"):
+        make_ensemble([paths[0], tmp_path / "junk.pt"], tmp_path / "x.pt")
+    assert not (tmp_path / "x.pt").exists()
+    blob = torch.load(e, weights_only=True)
+    with pytest.raises(CheckpointError, match="at least 2"):
+        EnsemblePolicy({**blob, "members": blob["members"][:1]}, "one.pt")
+    blob["members"][1]["actor"].pop("0.weight")
+    torch.save(blob, tmp_path / "broken.pt")
+    with pytest.raises(CheckpointError, match=r"broken.pt\[member 1\]: actor lacks"):
+        load_policy(tmp_path / "broken.pt")

@@ -184,3 +184,35 @@ def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selecti
     payload = {**d, "meta": {**dict(d["meta"]), **dict(meta or {}), "action_selection": selection}}
     atomic_torch_save(payload, dst)
     return dst
+
+
+def make_ensemble(members, dst: str | os.PathLike, selection: str = "median") -> pathlib.Path:
+    """Write ``members`` (policy exports or training checkpoints, at least 2, trained alike) to
+    ``dst`` as one ensemble policy file (``bimacppo_planner.policy.EnsemblePolicy``: each head acts
+    on the mixture of the members' distributions) that records ``selection`` as the way it acts
+    when deployed. The metadata lists each member's file, training seed and budget. ``dst`` must
+    not exist (FileExistsError); CheckpointError names a member that is unreadable, an ensemble
+    itself, or trained with another observation, decoding or NMPC than the first."""
+    from bimacppo_planner.policy import (DEPLOYED_SELECTIONS, ENSEMBLE_FORMAT, EnsemblePolicy,
+                                         policy_payload_of_checkpoint)
+
+    if selection not in DEPLOYED_SELECTIONS:
+        raise ValueError(f"action selection must be one of {DEPLOYED_SELECTIONS}, got {selection!r}")
+    dst = pathlib.Path(dst)
+    if dst.exists():
+        raise FileExistsError(f"{dst}: exists; a policy file is not overwritten")
+    payloads, listed = [], []
+    for src in members:
+        d = read_torch_file(src)
+        if isinstance(d, Mapping) and d.get("format") == CHECKPOINT_FORMAT:
+            d = policy_payload_of_checkpoint(d, src)
+        if isinstance(d, Mapping) and d.get("format") == ENSEMBLE_FORMAT:
+            raise CheckpointError(src, "is an ensemble; list its members instead")
+        Policy(d, src)   # refuses anything that is not a usable policy, naming src
+        payloads.append(dict(d))
+        listed.append({"file": str(src), "seed": d["meta"].get("seed"), "episodes": d["meta"].get("episodes")})
+    meta = {"members": listed, "combine": "mixture", "action_selection": selection}
+    payload = {"format": ENSEMBLE_FORMAT, "version": FORMAT_VERSION, "members": payloads, "meta": meta}
+    EnsemblePolicy(payload, dst)   # the members fit together, or CheckpointError before writing
+    atomic_torch_save(payload, dst)
+    return dst

@@ -5,13 +5,15 @@ training stack. Every file is read with ``torch.load(..., weights_only=True)`` (
 unpickling), so payloads hold only tensors and plain Python types. Any unreadable, truncated,
 foreign or mis-shaped file raises ``CheckpointError`` naming the file and the problem.
 
-Two formats are read: the policy export (actor + observation normaliser + metadata, what
-training writes as ``policy.pt``) and, for convenience, a full training checkpoint, whose actor
-and normaliser are taken out of the agent state.
+Three formats are read: the policy export (actor + observation normaliser + metadata, what
+training writes as ``policy.pt``), an ensemble of such exports that acts as one policy
+(``EnsemblePolicy``) and, for convenience, a full training checkpoint, whose actor and normaliser
+are taken out of the agent state.
 """
 from __future__ import annotations
 
 import json
+import math
 import os
 import pathlib
 from typing import Any, Mapping
@@ -21,6 +23,7 @@ import torch
 
 CHECKPOINT_FORMAT = "bimacppo-ppo-checkpoint"
 POLICY_FORMAT = "bimacppo-ppo-policy"
+ENSEMBLE_FORMAT = "bimacppo-ppo-ensemble"
 FORMAT_VERSION = 1
 
 #: deterministic selections, the ones a policy file may name as its own and a planner may run
@@ -28,6 +31,10 @@ DEPLOYED_SELECTIONS = ("argmax", "median")
 
 POLICY_KEYS = ("format", "version", "actor", "obs_rms", "obs_dim", "nvec", "hidden_sizes",
                "activation", "obs_norm", "config_hash", "meta")
+ENSEMBLE_KEYS = ("format", "version", "members", "meta")
+#: metadata every member of an ensemble must record alike: what the policy observes and how its
+#: actions are decoded (``env_config``), the controller that follows them, and the road
+ENSEMBLE_SHARED_META = ("env_config", "mpc_config", "mpc", "map")
 
 
 class CheckpointError(Exception):
@@ -137,10 +144,13 @@ class Policy:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Policy":
-        """A policy export or a full training checkpoint (its actor and normaliser)."""
+        """A policy export, an ensemble of them (an ``EnsemblePolicy``) or a full training
+        checkpoint (its actor and normaliser)."""
         d = read_torch_file(path)
         if isinstance(d, Mapping) and d.get("format") == CHECKPOINT_FORMAT:
             d = policy_payload_of_checkpoint(d, path)
+        if isinstance(d, Mapping) and d.get("format") == ENSEMBLE_FORMAT:
+            return EnsemblePolicy(d, path)
         return cls(d, path)
 
     def logits(self, obs: np.ndarray) -> list[np.ndarray]:
@@ -177,6 +187,60 @@ class Policy:
     def act_median(self, obs: np.ndarray) -> np.ndarray:
         """One observation -> action: each head's weighted median (see ``head_median``)."""
         return np.array([head_median(h) for h in self.logits(obs)], np.int64)
+
+
+class EnsemblePolicy(Policy):
+    """Several policies trained alike (the same env config, decoding and NMPC; other training
+    seeds) acting as one: each head's distribution is the mixture, the mean of the members'
+    distributions, and ``logits`` returns its log-probabilities, so argmax, median and sampling
+    (``with_selection``) act on the mixture exactly as they act on one policy's head.
+
+    Why a mixture: independently trained seeds fail in different scenarios, and where one member
+    puts its mass on a bad value the others outvote it, while a value every member favours keeps
+    its mass. Averaging logits instead would let one overconfident member decide alone. The
+    members keep their own observation normalisers."""
+
+    def __init__(self, payload: Mapping[str, Any], path: str | os.PathLike = "<memory>"):
+        require_keys(path, payload, ENSEMBLE_KEYS, "ensemble file", ENSEMBLE_FORMAT)
+        if payload["version"] != FORMAT_VERSION:
+            raise CheckpointError(path, f"format version {payload['version']!r}, this code reads {FORMAT_VERSION}")
+        members = payload["members"]
+        if not isinstance(members, (list, tuple)) or len(members) < 2:
+            raise CheckpointError(path, "an ensemble needs a list of at least 2 member policies")
+        self.members = [Policy(m, f"{path}[member {i}]") for i, m in enumerate(members)]
+        first = self.members[0]
+        for i, m in enumerate(self.members[1:], 1):
+            if (m.obs_dim, m.nvec) != (first.obs_dim, first.nvec):
+                raise CheckpointError(path, f"member {i} takes observations of size {m.obs_dim} and acts over "
+                                            f"nvec={list(m.nvec)}; member 0: {first.obs_dim}, {list(first.nvec)}")
+            differ = [k for k in ENSEMBLE_SHARED_META if m.meta.get(k) != first.meta.get(k)]
+            if differ:
+                raise CheckpointError(path, f"member {i} records another {', '.join(differ)} than member 0; "
+                                            "the members of an ensemble must be trained alike")
+        self.path = str(path)
+        self.obs_dim, self.nvec = first.obs_dim, first.nvec
+        self.config_hash = "+".join(m.config_hash for m in self.members)
+        self.meta = dict(payload["meta"])
+        for k in ENSEMBLE_SHARED_META:
+            if k in first.meta:
+                self.meta.setdefault(k, first.meta[k])
+        self.selection = str(self.meta.get("action_selection", "argmax"))
+        if self.selection not in DEPLOYED_SELECTIONS:
+            raise CheckpointError(path, f"metadata action_selection {self.selection!r} is not one of "
+                                        f"{DEPLOYED_SELECTIONS}")
+
+    def logits(self, obs: np.ndarray) -> list[np.ndarray]:
+        """Per head, the log of the mean of the members' probabilities (a mixture)."""
+        per_member = [m.logits(obs) for m in self.members]
+        log_k = math.log(len(self.members))
+        out = []
+        for h in range(len(self.nvec)):
+            z = np.stack([heads[h] for heads in per_member]).astype(np.float64)
+            z -= z.max(axis=1, keepdims=True)
+            logp = z - np.log(np.exp(z).sum(axis=1, keepdims=True))     # each member's log-probabilities
+            top = logp.max(axis=0)
+            out.append(top + np.log(np.exp(logp - top).sum(axis=0)) - log_k)
+        return out
 
 
 def head_median(logits: np.ndarray) -> int:
