@@ -29,6 +29,7 @@ can have been driven (the EV weaving between lanes).
 from __future__ import annotations
 
 import argparse
+import json
 from collections import Counter
 
 import sys
@@ -137,7 +138,7 @@ def run_by_distance(env, act, seed_set: str, episodes: int, slow_max: int = 2, e
         cause = cause_of(info)
         out.setdefault(d, Counter())[cause] += 1
         if episodes_out is not None:
-            rec = {"distance": d, "edge": edge, "outcome": cause, "a3_no_lane": missing,
+            rec = {"scenario_seed": seed, "distance": d, "edge": edge, "outcome": cause, "a3_no_lane": missing,
                    "closing": closing, "first_closing_before_end": None if first is None else t - first,
                    "reversals": reversals}
             if cause == "sv collision":
@@ -172,6 +173,22 @@ def outcomes_by_distance(policy, seed_set: str, episodes: int, slow_max: int = 2
         return run_by_distance(env, act, seed_set, episodes, slow_max, episodes_out)
     finally:
         env.close()
+
+
+def check_records_path(parser, path) -> None:
+    """A usage error for a ``--records`` file that exists (never overwritten) or whose folder does not."""
+    if path is None:
+        return
+    if path.exists():
+        parser.error(f"--records {path}: exists; choose another file")
+    if not path.parent.is_dir():
+        parser.error(f"--records {path}: no folder {path.parent}")
+
+
+def write_records(path, records: list) -> None:
+    """One JSON line per scenario record to ``path`` (nothing when None)."""
+    if path is not None:
+        path.write_text("".join(json.dumps(r) + "\n" for r in records))
 
 
 def by_start_lane_markdown(records: list) -> str:
@@ -250,9 +267,13 @@ def main(argv=None) -> int:
                         "decoding variant on a trained policy; the observation and the action heads must match")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--slow-svs", type=int, default=2, help="at most this many slow SVs per scenario (protocol: 2)")
+    p.add_argument("--records", type=Path, default=None,
+                   help="with a policy: also write one JSON line per scenario (its scenario_seed, distance, "
+                        "outcome, ...) to this new file, e.g. to compare which scenarios two drivers fail")
     args = p.parse_args(argv)
     if not 1 <= args.episodes <= 1000:
         p.error(f"--episodes must be in 1..1000, got {args.episodes}")
+    check_records_path(p, args.records)
     if not 0 <= args.slow_svs <= N_SV:
         p.error(f"--slow-svs must be in 0..{N_SV}, got {args.slow_svs}")
     c = distances(args.seed_set, args.episodes, args.slow_svs)
@@ -267,6 +288,7 @@ def main(argv=None) -> int:
                                       args.mpc_config, records, args.env_config)
         except (ConfigError, EvaluationError, CheckpointError) as exc:
             p.error(str(exc))
+        write_records(args.records, records)
         print(f"\n{args.policy}, {args.action or 'recorded'} actions: outcomes by distance\n")
         print(by_distance_markdown(by))
         print("\nby start lane (edge: a lane with no lane beside it on one side)\n")

@@ -40,7 +40,8 @@ from bimacppo_planner.policy import ACTION_SELECTIONS
 from bimacppo_sim.drivers import blocked_lanes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from overtaking_lanes import MAP, by_distance_markdown, policy_driver, run_by_distance  # noqa: E402
+from overtaking_lanes import (MAP, by_distance_markdown, check_records_path, policy_driver,  # noqa: E402
+                              run_by_distance, write_records)
 
 CONFIG = Path(__file__).resolve().parents[1] / "studies/config/env_wait_chord_junction_road_overtake_chosen.yaml"
 SLOW_SPEED = 5.0        # m/s: an SV ahead slower than this blocks its lane
@@ -89,11 +90,14 @@ def act(env) -> np.ndarray:
     return np.array([a1, a2, env.cfg.action.lane_change.index(side)])
 
 
-def run(seed_set: str, episodes: int, slow_max: int = 2, reach_time: float | None = None) -> dict:
-    """The probe's outcomes by distance (overtaking_lanes.run_by_distance), with A1's reach
-    bounded by ``reach_time`` (``action.reach_time``; None: unbounded, the paper's decoding)."""
+def run(seed_set: str, episodes: int, slow_max: int = 2, reach_time: float | None = None,
+        episodes_out: list | None = None) -> dict:
+    """The probe's outcomes by distance (overtaking_lanes.run_by_distance, which appends its
+    per-scenario records to ``episodes_out``), with A1's reach bounded by ``reach_time``
+    (``action.reach_time``; None: unbounded, the paper's decoding)."""
     cfg = EnvConfig.load(CONFIG, overrides={"action.reach_time": reach_time})
-    return run_by_distance(IntersectionEnv(MAP, config=cfg), lambda env, obs: act(env), seed_set, episodes, slow_max)
+    return run_by_distance(IntersectionEnv(MAP, config=cfg), lambda env, obs: act(env), seed_set, episodes, slow_max,
+                           episodes_out)
 
 
 PROBE_HEADS = {"lane": (2,), "speed": (0, 1)}   # the action entries the probe decides
@@ -134,7 +138,13 @@ def main(argv=None) -> int:
                    help="with --policy: the part of each action the probe decides (lane: A3; speed: A1 and A2)")
     p.add_argument("--action", choices=ACTION_SELECTIONS, default=None,
                    help="with --policy: how it picks each head's action (default: the way its file records)")
+    p.add_argument("--records", type=Path, default=None,
+                   help="the probe alone: also write one JSON line per scenario to this new file "
+                        "(as scripts/overtaking_lanes.py --records)")
     args = p.parse_args(argv)
+    check_records_path(p, args.records)
+    if args.records is not None and args.policy is not None:
+        p.error("--records applies to the probe alone")
     if (args.policy is None) != (args.probe_heads is None):
         p.error("--policy and --probe-heads go together")
     if args.policy is not None and args.reach_time is not None:
@@ -153,7 +163,9 @@ def main(argv=None) -> int:
               "outcomes by distance\n")
         print(by_distance_markdown(by))
         return 0
-    by = run(args.seed_set, args.episodes, reach_time=args.reach_time)
+    records: list = []
+    by = run(args.seed_set, args.episodes, reach_time=args.reach_time, episodes_out=records)
+    write_records(args.records, records)
     how = "A1 by its speed" if args.reach_time is None else f"action.reach_time {args.reach_time:g} s"
     print(f"scripted overtaking probe ({how}), {args.seed_set} seeds, {args.episodes} scenarios: outcomes by distance\n")
     print(by_distance_markdown(by))

@@ -253,3 +253,34 @@ def test_a_policy_runs_in_another_env_config_and_a_mismatch_is_one_usage_error(t
             script.main([policy, "--episodes", "2", "--env-config", cfg])
         err = capsys.readouterr().err
         assert e.value.code == 2 and "error:" in err and "Traceback" not in err, err
+
+
+def test_records_name_each_scenario_and_are_never_overwritten(tmp_path, capsys):
+    """--records writes one JSON line per scenario, in order, with its scenario seed and outcome
+    as the tables count them (policy and probe alike); an existing file or a missing folder is one
+    usage error and nothing is run."""
+    import json
+
+    from conftest import REPO
+    from bimacppo_learning.evaluate import eval_seed
+    script, probe = load_script("overtaking_lanes"), load_script("overtaking_probe")
+    policy = str(REPO / "studies/policies/bimacppo_three_lane_overtake_leads.pt")
+    out = tmp_path / "p.jsonl"
+    assert script.main([policy, "--episodes", "3", "--records", str(out)]) == 0
+    table = capsys.readouterr().out
+    recs = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [r["scenario_seed"] for r in recs] == [eval_seed(1, 3, k, "validation") for k in range(3)]
+    assert f"| all | 3 | {sum(r['outcome'] == 'success' for r in recs)} |" in table
+    assert probe.main(["--episodes", "2", "--seed-set", "test", "--records", str(tmp_path / "q.jsonl")]) == 0
+    capsys.readouterr()
+    q = [json.loads(line) for line in (tmp_path / "q.jsonl").read_text().splitlines()]
+    assert [r["scenario_seed"] for r in q] == [eval_seed(1, 3, k, "test") for k in range(2)]
+    before = out.read_text()
+    for argv, mod in (([policy, "--episodes", "1", "--records", str(out)], script),
+                      ([policy, "--episodes", "1", "--records", str(tmp_path / "no" / "r.jsonl")], script),
+                      (["--episodes", "1", "--records", str(out)], probe)):
+        with pytest.raises(SystemExit) as e:
+            mod.main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and "--records" in err and "Traceback" not in err
+    assert out.read_text() == before
