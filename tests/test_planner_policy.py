@@ -212,3 +212,56 @@ def test_an_ensemble_refuses_members_trained_otherwise_and_never_overwrites(memb
     torch.save(blob, tmp_path / "broken.pt")
     with pytest.raises(CheckpointError, match=r"broken.pt\[member 1\]: actor lacks"):
         load_policy(tmp_path / "broken.pt")
+
+
+def _constant_member(path, cfg, a3_probs, seed):
+    """A policy export whose heads ignore the observation: A1 and A2 uniform, A3 as given."""
+    import torch
+
+    from bimacppo_planner.policy import Policy
+
+    src = export_policy(PPO(cfg.obs_dim, cfg.nvec, seed=seed), path,
+                        meta={"env_config": cfg.to_dict(), "mpc": "fast", "map": "three_lane_straight"})
+    blob = torch.load(src, weights_only=True)
+    last = max(int(k.split(".")[0]) for k in blob["actor"])
+    blob["actor"][f"{last}.weight"].zero_()
+    bias = torch.zeros(sum(cfg.nvec))
+    bias[-3:] = torch.log(torch.tensor(a3_probs))
+    blob["actor"][f"{last}.bias"] = bias
+    torch.save(blob, path)
+    return Policy.load(path)
+
+
+def test_a_vote_picks_a_side_most_members_chose_where_the_mixture_keeps_between_them(tmp_path):
+    """Three members pass right by a small margin, two pass left with certainty: the mixture's
+    median on A3 (left / keep / right) is keep, which none chose; the vote is right. Where the
+    most chosen values tie, the vote is the mixture's."""
+    from bimacppo_learning.checkpoint import make_ensemble
+    from bimacppo_planner.policy import CheckpointError, EnsemblePolicy
+
+    cfg = EnvConfig.load()
+    right, left = [0.001, 0.449, 0.55], [0.9, 0.099, 0.001]
+    paths = [_constant_member(tmp_path / f"m{i}.pt", cfg, p, i).path
+             for i, p in enumerate([right, right, right, left, left])]
+    obs = np.zeros(cfg.obs_dim)
+    mix = load_policy(make_ensemble(paths, tmp_path / "mix.pt"))
+    vote = load_policy(make_ensemble(paths, tmp_path / "vote.pt", combine="vote"))
+    assert (mix.combine, vote.combine) == ("mixture", "vote")
+    assert mix.act_median(obs)[2] == 1 and vote.act_median(obs)[2] == 2
+    np.testing.assert_array_equal(vote.act_median(obs)[:2], mix.act_median(obs)[:2])   # uniform heads: all tie
+    assert mix.act(obs)[2] == 0 and vote.act(obs)[2] == 2   # argmax: the mixture's mode is left (0.36)
+    most_left = load_policy(make_ensemble(paths[2:], tmp_path / "l.pt", combine="vote"))   # one right, two left
+    assert most_left.act_median(obs)[2] == 0
+    tie = load_policy(make_ensemble(paths[2:4], tmp_path / "tie.pt", "argmax", combine="vote"))   # right 1 : left 1
+    mixture = np.exp(tie.logits(obs)[2])        # [0.45, 0.27, 0.28]: mode left, median keep
+    assert tie.act(obs)[2] == int(np.argmax(mixture)) == 0
+    assert tie.act_median(obs)[2] == head_median(tie.logits(obs)[2]) == 1
+    draws = [vote.act(obs, deterministic=False, rng=np.random.default_rng(k))[2] for k in range(300)]
+    assert set(draws) == {0, 1, 2}                 # sampling draws from the mixture, votes nothing
+    with pytest.raises(ValueError, match="combine must be one of"):
+        make_ensemble(paths, tmp_path / "x.pt", combine="mean")
+    import torch
+    blob = torch.load(tmp_path / "vote.pt", weights_only=True)
+    blob["meta"]["combine"] = "mean"
+    with pytest.raises(CheckpointError, match="combine 'mean'"):
+        EnsemblePolicy(blob, "bad.pt")

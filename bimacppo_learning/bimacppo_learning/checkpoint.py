@@ -186,18 +186,21 @@ def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selecti
     return dst
 
 
-def make_ensemble(members, dst: str | os.PathLike, selection: str = "median") -> pathlib.Path:
+def make_ensemble(members, dst: str | os.PathLike, selection: str = "median",
+                  combine: str = "mixture") -> pathlib.Path:
     """Write ``members`` (policy exports or training checkpoints, at least 2, trained alike) to
     ``dst`` as one ensemble policy file (``bimacppo_planner.policy.EnsemblePolicy``: each head acts
-    on the mixture of the members' distributions) that records ``selection`` as the way it acts
-    when deployed. The metadata lists each member's file, training seed and budget. ``dst`` must
+    on the mixture of the members' distributions, or by their vote with ``combine="vote"``) that
+    records ``selection`` as the way it acts when deployed. The metadata lists each member's file, training seed and budget. ``dst`` must
     not exist (FileExistsError); CheckpointError names a member that is unreadable, an ensemble
     itself, or trained with another observation, decoding or NMPC than the first."""
-    from bimacppo_planner.policy import (DEPLOYED_SELECTIONS, ENSEMBLE_FORMAT, EnsemblePolicy,
-                                         policy_payload_of_checkpoint)
+    from bimacppo_planner.policy import (DEPLOYED_SELECTIONS, ENSEMBLE_COMBINES, ENSEMBLE_FORMAT,
+                                         EnsemblePolicy, policy_payload_of_checkpoint)
 
     if selection not in DEPLOYED_SELECTIONS:
         raise ValueError(f"action selection must be one of {DEPLOYED_SELECTIONS}, got {selection!r}")
+    if combine not in ENSEMBLE_COMBINES:
+        raise ValueError(f"combine must be one of {ENSEMBLE_COMBINES}, got {combine!r}")
     dst = pathlib.Path(dst)
     if dst.exists():
         raise FileExistsError(f"{dst}: exists; a policy file is not overwritten")
@@ -211,7 +214,7 @@ def make_ensemble(members, dst: str | os.PathLike, selection: str = "median") ->
         Policy(d, src)   # refuses anything that is not a usable policy, naming src
         payloads.append(dict(d))
         listed.append({"file": str(src), "seed": d["meta"].get("seed"), "episodes": d["meta"].get("episodes")})
-    meta = {"members": listed, "combine": "mixture", "action_selection": selection}
+    meta = {"members": listed, "combine": combine, "action_selection": selection}
     payload = {"format": ENSEMBLE_FORMAT, "version": FORMAT_VERSION, "members": payloads, "meta": meta}
     EnsemblePolicy(payload, dst)   # the members fit together, or CheckpointError before writing
     atomic_torch_save(payload, dst)

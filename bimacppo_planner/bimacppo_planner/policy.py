@@ -35,6 +35,8 @@ ENSEMBLE_KEYS = ("format", "version", "members", "meta")
 #: metadata every member of an ensemble must record alike: what the policy observes and how its
 #: actions are decoded (``env_config``), the controller that follows them, and the road
 ENSEMBLE_SHARED_META = ("env_config", "mpc_config", "mpc", "map")
+#: how an ensemble's deterministic actions combine its members (``EnsemblePolicy``)
+ENSEMBLE_COMBINES = ("mixture", "vote")
 
 
 class CheckpointError(Exception):
@@ -191,14 +193,21 @@ class Policy:
 
 class EnsemblePolicy(Policy):
     """Several policies trained alike (the same env config, decoding and NMPC; other training
-    seeds) acting as one: each head's distribution is the mixture, the mean of the members'
-    distributions, and ``logits`` returns its log-probabilities, so argmax, median and sampling
-    (``with_selection``) act on the mixture exactly as they act on one policy's head.
+    seeds) acting as one. Each head's distribution is the mixture, the mean of the members'
+    distributions, and ``logits`` returns its log-probabilities, so sampling acts on the mixture.
+    The deterministic actions (argmax, median) follow the file's ``meta["combine"]``:
 
-    Why a mixture: independently trained seeds fail in different scenarios, and where one member
-    puts its mass on a bad value the others outvote it, while a value every member favours keeps
-    its mass. Averaging logits instead would let one overconfident member decide alone. The
-    members keep their own observation normalisers."""
+    * ``mixture`` (the default): the argmax or median of the mixture, exactly as on one
+      policy's head;
+    * ``vote``: per head, the value most members choose by the same selection, the mixture's
+      where the most chosen values tie.
+
+    Why combine: independently trained seeds fail in different scenarios, and where one member
+    puts its mass on a bad value the others outvote it. Averaging logits instead would let one
+    overconfident member decide alone. Why a vote beside the mixture: on an ordinal head whose
+    members split between the two ends (pass left, pass right), the mixture's median is the
+    value between them (keep the lane), which none of them chose; a vote picks a side most of
+    them chose. The members keep their own observation normalisers."""
 
     def __init__(self, payload: Mapping[str, Any], path: str | os.PathLike = "<memory>"):
         require_keys(path, payload, ENSEMBLE_KEYS, "ensemble file", ENSEMBLE_FORMAT)
@@ -228,6 +237,25 @@ class EnsemblePolicy(Policy):
         if self.selection not in DEPLOYED_SELECTIONS:
             raise CheckpointError(path, f"metadata action_selection {self.selection!r} is not one of "
                                         f"{DEPLOYED_SELECTIONS}")
+        self.combine = str(self.meta.get("combine", "mixture"))
+        if self.combine not in ENSEMBLE_COMBINES:
+            raise CheckpointError(path, f"metadata combine {self.combine!r} is not one of {ENSEMBLE_COMBINES}")
+
+    def act(self, obs: np.ndarray, deterministic: bool = True,
+            rng: np.random.Generator | None = None) -> np.ndarray:
+        """The mixture's argmax per head (``combine: vote``: the members' argmaxes voted), or a
+        draw from the mixture."""
+        mixed = super().act(obs, deterministic, rng)
+        if not deterministic or self.combine == "mixture":
+            return mixed
+        return _plurality(np.array([m.act(obs) for m in self.members]), mixed)
+
+    def act_median(self, obs: np.ndarray) -> np.ndarray:
+        """The mixture's median per head (``combine: vote``: the members' medians voted)."""
+        mixed = super().act_median(obs)
+        if self.combine == "mixture":
+            return mixed
+        return _plurality(np.array([m.act_median(obs) for m in self.members]), mixed)
 
     def logits(self, obs: np.ndarray) -> list[np.ndarray]:
         """Per head, the log of the mean of the members' probabilities (a mixture)."""
@@ -241,6 +269,17 @@ class EnsemblePolicy(Policy):
             top = logp.max(axis=0)
             out.append(top + np.log(np.exp(logp - top).sum(axis=0)) - log_k)
         return out
+
+
+def _plurality(votes: np.ndarray, tie: np.ndarray) -> np.ndarray:
+    """Per column of ``votes`` (members x heads), the value most rows hold; ``tie``'s where the
+    most held values tie."""
+    out = np.array(tie, np.int64)
+    for h in range(votes.shape[1]):
+        values, counts = np.unique(votes[:, h], return_counts=True)
+        if np.count_nonzero(counts == counts.max()) == 1:
+            out[h] = values[np.argmax(counts)]
+    return out
 
 
 def head_median(logits: np.ndarray) -> int:
