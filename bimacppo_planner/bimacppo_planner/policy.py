@@ -245,22 +245,28 @@ class EnsemblePolicy(Policy):
             rng: np.random.Generator | None = None) -> np.ndarray:
         """The mixture's argmax per head (``combine: vote``: the members' argmaxes voted), or a
         draw from the mixture."""
-        mixed = super().act(obs, deterministic, rng)
-        if not deterministic or self.combine == "mixture":
-            return mixed
-        return _plurality(np.array([m.act(obs) for m in self.members]), mixed)
+        if not deterministic:
+            return super().act(obs, deterministic, rng)
+        return self._decide(obs, lambda z: int(np.argmax(z)))
 
     def act_median(self, obs: np.ndarray) -> np.ndarray:
         """The mixture's median per head (``combine: vote``: the members' medians voted)."""
-        mixed = super().act_median(obs)
-        if self.combine == "mixture":
-            return mixed
-        return _plurality(np.array([m.act_median(obs) for m in self.members]), mixed)
+        return self._decide(obs, head_median)
 
     def logits(self, obs: np.ndarray) -> list[np.ndarray]:
         """Per head, the log of the mean of the members' probabilities (a mixture)."""
+        return self._mixture([m.logits(obs) for m in self.members])
+
+    def _decide(self, obs: np.ndarray, select) -> np.ndarray:
+        """``select`` (one head's logits -> value) on the mixture, or voted over the members."""
         per_member = [m.logits(obs) for m in self.members]
-        log_k = math.log(len(self.members))
+        mixed = np.array([select(z) for z in self._mixture(per_member)], np.int64)
+        if self.combine == "mixture":
+            return mixed
+        return _plurality(np.array([[select(z) for z in heads] for heads in per_member]), mixed)
+
+    def _mixture(self, per_member: list[list[np.ndarray]]) -> list[np.ndarray]:
+        log_k = math.log(len(per_member))
         out = []
         for h in range(len(self.nvec)):
             z = np.stack([heads[h] for heads in per_member]).astype(np.float64)
