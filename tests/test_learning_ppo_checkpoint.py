@@ -202,6 +202,42 @@ def test_damaged_policy_file_raises(trained, tmp_path):
     assert np.array_equal(from_ckpt.act(obs), exported.act(obs))
 
 
+@pytest.mark.parametrize("where", ["actor", "obs_rms", "critic"])
+def test_a_non_finite_weight_is_a_corrupt_file_not_a_silent_policy(trained, tmp_path, where, capsys):
+    """A NaN or inf in the actor or the normaliser would make every argmax 0 without an error:
+    the policy export, the training checkpoint (--resume, --init-policy, evaluation) and
+    bimacppo-evaluate refuse it, naming the tensor; a NaN critic spoils a checkpoint too."""
+    from bimacppo_learning.cli import evaluate_main
+
+    tr, _ = trained
+    blob = torch.load(tr.last_checkpoint, weights_only=True)
+    if where == "obs_rms":
+        blob["agent"]["obs_rms"]["var"][1] = float("inf")
+        name = r"obs_rms\.var"
+    else:
+        blob["agent"][where]["2.bias"][0] = float("nan")
+        name = rf"{where}\.2\.bias holds 1 non-finite"
+    torch.save(blob, tmp_path / "ckpt.pt")
+    with pytest.raises(CheckpointError, match=rf"ckpt\.pt: {name}"):
+        load_checkpoint(tmp_path / "ckpt.pt")
+    if where == "critic":
+        Policy.load(tmp_path / "ckpt.pt")     # the actor alone is sound: a policy can be taken out of it
+        return
+    with pytest.raises(CheckpointError, match=name):
+        Policy.load(tmp_path / "ckpt.pt")
+    export = torch.load(export_policy(tr.agent, tmp_path / "p.pt"), weights_only=True)
+    if where == "obs_rms":
+        export["obs_rms"]["var"][1] = float("inf")
+    else:
+        export["actor"]["2.bias"][0] = float("nan")
+    torch.save(export, tmp_path / "nan.pt")
+    with pytest.raises(CheckpointError, match=rf"nan\.pt: {name}"):
+        Policy.load(tmp_path / "nan.pt")
+    assert evaluate_main([str(tmp_path / "nan.pt"), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nan.pt" in err[0] and "non-finite" in err[0]
+
+
 def test_checkpoints_carry_the_run_metadata_and_its_env_config(tmp_path):
     from bimacppo_learning.checkpoint import run_meta_of
     from bimacppo_planner.decision import EnvConfig

@@ -19,7 +19,7 @@ from typing import Any, Mapping
 import torch
 
 from bimacppo_planner.policy import (CHECKPOINT_FORMAT, FORMAT_VERSION, POLICY_FORMAT,  # noqa: F401
-                                     CheckpointError, Policy, read_torch_file, require_keys)
+                                     CheckpointError, Policy, read_torch_file, require_finite, require_keys)
 
 CKPT_PATTERN = re.compile(r"^ckpt_ep(\d+)\.pt$")
 
@@ -55,7 +55,14 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     require_keys(path, d, _CKPT_KEYS, "checkpoint", CHECKPOINT_FORMAT)
     if d["version"] != FORMAT_VERSION:
         raise CheckpointError(path, f"format version {d['version']!r}, this code reads {FORMAT_VERSION}")
-    require_keys(path, d["agent"], _AGENT_KEYS, "checkpoint['agent']", CHECKPOINT_FORMAT)
+    agent = d["agent"]
+    require_keys(path, agent, _AGENT_KEYS, "checkpoint['agent']", CHECKPOINT_FORMAT)
+    for net in ("actor", "critic"):
+        if isinstance(agent[net], Mapping):
+            require_finite(path, {k: v for k, v in agent[net].items() if isinstance(v, torch.Tensor)}, net)
+    rms = agent["obs_rms"]
+    if isinstance(rms, Mapping):
+        require_finite(path, {k: rms[k] for k in ("mean", "var") if k in rms}, "obs_rms")
     return d
 
 

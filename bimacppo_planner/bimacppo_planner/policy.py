@@ -78,6 +78,17 @@ def require_keys(path, d: Any, keys, what: str, fmt: str) -> None:
         raise CheckpointError(path, f"{what} lacks key(s) {missing}")
 
 
+def require_finite(path, tensors: Mapping[str, Any], what: str) -> None:
+    """Every tensor or array in ``tensors`` is finite, else CheckpointError naming the first that
+    is not: a NaN or inf weight makes every action the same (the argmax of NaN logits is 0)
+    without an error, so a file holding one is refused as corrupt when it is read."""
+    for name, t in tensors.items():
+        a = t.detach().cpu().numpy() if isinstance(t, torch.Tensor) else np.asarray(t, np.float64)
+        if not np.all(np.isfinite(a)):
+            raise CheckpointError(path, f"{what}.{name} holds {int(np.size(a) - np.isfinite(a).sum())} "
+                                        "non-finite value(s) (NaN or inf): the file is corrupt")
+
+
 def policy_payload_of_checkpoint(d: Mapping[str, Any], path: str | os.PathLike) -> dict:
     """The policy export held inside a training checkpoint (its actor, normaliser, PPO sizes)."""
     try:
@@ -118,6 +129,8 @@ class Policy:
                                         f"{DEPLOYED_SELECTIONS}")
         sizes = [self.obs_dim, *self.hidden_sizes, sum(self.nvec)]
         actor = payload["actor"]
+        if isinstance(actor, Mapping):
+            require_finite(path, {k: v for k, v in actor.items() if isinstance(v, torch.Tensor)}, "actor")
         self.layers: list[tuple[np.ndarray, np.ndarray]] = []
         for k in range(len(sizes) - 1):
             wk, bk = f"{2 * k}.weight", f"{2 * k}.bias"
@@ -139,6 +152,7 @@ class Policy:
             self.count = float(rms["count"])
         except (KeyError, TypeError) as exc:
             raise CheckpointError(path, f"obs normaliser is malformed: {exc}") from None
+        require_finite(path, {"mean": self.mean, "var": rms["var"]}, "obs_rms")
         if self.mean.shape != (self.obs_dim,) or self.std.shape != (self.obs_dim,):
             raise CheckpointError(path, f"obs normaliser shape {self.mean.shape} != ({self.obs_dim},)")
         self._split = np.cumsum(self.nvec)[:-1]
