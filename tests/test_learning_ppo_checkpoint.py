@@ -238,6 +238,33 @@ def test_a_non_finite_weight_is_a_corrupt_file_not_a_silent_policy(trained, tmp_
     assert len(err) == 1 and "nan.pt" in err[0] and "non-finite" in err[0]
 
 
+@pytest.mark.parametrize("key, value, match", [
+    ("var", -1.0, "obs_rms.var holds negative variances"),
+    ("clip", float("nan"), "obs_rms.clip holds 1 non-finite"),
+    ("clip", 0.0, r"obs_rms.clip = 0.0 must be > 0"),
+    ("eps", -1e-8, r"obs_rms.eps = -1e-08 must be >= 0"),
+    ("count", -3.0, r"obs_rms.count = -3.0 must be >= 0"),
+    ("mean", "zeros", "obs_rms.mean is a str, not numbers"),
+])
+def test_a_normaliser_that_cannot_normalise_is_a_corrupt_file(trained, tmp_path, key, value, match):
+    """A negative variance or a NaN or zero clip would turn every observation into NaN (or 0)
+    and every action into argmax 0 without an error: export and checkpoint are both refused."""
+    tr, _ = trained
+    export = torch.load(export_policy(tr.agent, tmp_path / "p.pt"), weights_only=True)
+    blob = torch.load(tr.last_checkpoint, weights_only=True)
+    for rms in (export["obs_rms"], blob["agent"]["obs_rms"]):
+        if key == "var":
+            rms["var"][0] = value
+        else:
+            rms[key] = value
+    torch.save(export, tmp_path / "bad_export.pt")
+    torch.save(blob, tmp_path / "bad_ckpt.pt")
+    with pytest.raises(CheckpointError, match=rf"bad_export\.pt: {match}"):
+        Policy.load(tmp_path / "bad_export.pt")
+    with pytest.raises(CheckpointError, match=rf"bad_ckpt\.pt: {match}"):
+        load_checkpoint(tmp_path / "bad_ckpt.pt")
+
+
 def test_checkpoints_carry_the_run_metadata_and_its_env_config(tmp_path):
     from bimacppo_learning.checkpoint import run_meta_of
     from bimacppo_planner.decision import EnvConfig

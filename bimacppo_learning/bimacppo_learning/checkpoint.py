@@ -19,7 +19,8 @@ from typing import Any, Mapping
 import torch
 
 from bimacppo_planner.policy import (CHECKPOINT_FORMAT, FORMAT_VERSION, POLICY_FORMAT,  # noqa: F401
-                                     CheckpointError, Policy, read_torch_file, require_finite, require_keys)
+                                     CheckpointError, Policy, check_normaliser, read_torch_file, require_finite,
+                                     require_keys)
 
 CKPT_PATTERN = re.compile(r"^ckpt_ep(\d+)\.pt$")
 
@@ -60,9 +61,8 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     for net in ("actor", "critic"):
         if isinstance(agent[net], Mapping):
             require_finite(path, {k: v for k, v in agent[net].items() if isinstance(v, torch.Tensor)}, net)
-    rms = agent["obs_rms"]
-    if isinstance(rms, Mapping):
-        require_finite(path, {k: rms[k] for k in ("mean", "var") if k in rms}, "obs_rms")
+    if isinstance(agent["obs_rms"], Mapping):
+        check_normaliser(path, agent["obs_rms"])
     return d
 
 

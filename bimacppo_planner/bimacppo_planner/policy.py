@@ -83,10 +83,30 @@ def require_finite(path, tensors: Mapping[str, Any], what: str) -> None:
     is not: a NaN or inf weight makes every action the same (the argmax of NaN logits is 0)
     without an error, so a file holding one is refused as corrupt when it is read."""
     for name, t in tensors.items():
-        a = t.detach().cpu().numpy() if isinstance(t, torch.Tensor) else np.asarray(t, np.float64)
-        if not np.all(np.isfinite(a)):
+        try:
+            a = t.detach().cpu().numpy() if isinstance(t, torch.Tensor) else np.asarray(t, np.float64)
+            finite = np.all(np.isfinite(a))
+        except (TypeError, ValueError):
+            raise CheckpointError(path, f"{what}.{name} is a {type(t).__name__}, not numbers: the file is "
+                                        "corrupt") from None
+        if not finite:
             raise CheckpointError(path, f"{what}.{name} holds {int(np.size(a) - np.isfinite(a).sum())} "
                                         "non-finite value(s) (NaN or inf): the file is corrupt")
+
+
+def check_normaliser(path, rms: Mapping[str, Any]) -> None:
+    """The observation normaliser's statistics can normalise: finite mean, a finite variance
+    that is not negative, finite eps >= 0, clip > 0 and count >= 0; else CheckpointError naming
+    the entry. A negative variance or a NaN clip turns every observation into NaN, and every
+    action into argmax 0, without an error."""
+    require_finite(path, {k: rms[k] for k in ("mean", "var", "eps", "clip", "count") if k in rms}, "obs_rms")
+    var = rms.get("var")
+    if var is not None and np.any(np.asarray(var, np.float64) < 0.0):
+        raise CheckpointError(path, "obs_rms.var holds negative variances: the file is corrupt")
+    for key, low, strict in (("eps", 0.0, False), ("clip", 0.0, True), ("count", 0.0, False)):
+        if key in rms and (float(rms[key]) <= low if strict else float(rms[key]) < low):
+            raise CheckpointError(path, f"obs_rms.{key} = {float(rms[key])!r} must be "
+                                        f"{'>' if strict else '>='} {low:g}: the file is corrupt")
 
 
 def policy_payload_of_checkpoint(d: Mapping[str, Any], path: str | os.PathLike) -> dict:
@@ -145,6 +165,8 @@ class Policy:
         if len(actor) != 2 * len(self.layers):
             raise CheckpointError(path, f"actor has {len(actor)} tensors, expected {2 * len(self.layers)}")
         rms = payload["obs_rms"]
+        if isinstance(rms, Mapping):
+            check_normaliser(path, rms)
         try:
             self.mean = np.asarray(rms["mean"], np.float64)
             self.std = np.sqrt(np.asarray(rms["var"], np.float64) + float(rms["eps"]))
@@ -152,7 +174,6 @@ class Policy:
             self.count = float(rms["count"])
         except (KeyError, TypeError) as exc:
             raise CheckpointError(path, f"obs normaliser is malformed: {exc}") from None
-        require_finite(path, {"mean": self.mean, "var": rms["var"]}, "obs_rms")
         if self.mean.shape != (self.obs_dim,) or self.std.shape != (self.obs_dim,):
             raise CheckpointError(path, f"obs normaliser shape {self.mean.shape} != ({self.obs_dim},)")
         self._split = np.cumsum(self.nvec)[:-1]
