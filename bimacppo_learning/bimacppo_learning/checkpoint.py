@@ -177,16 +177,14 @@ def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selecti
     planner and ``bimacppo-evaluate`` then run it so unless told otherwise), and ``meta``'s
     entries beside the source's own metadata. The actor and normaliser are copied unchanged. ``dst`` must not exist (FileExistsError): a policy file is
     never overwritten. ValueError for a selection that is not deterministic."""
-    from bimacppo_planner.policy import DEPLOYED_SELECTIONS, policy_payload_of_checkpoint
+    from bimacppo_planner.policy import DEPLOYED_SELECTIONS, read_policy_payload
 
     if selection not in DEPLOYED_SELECTIONS:
         raise ValueError(f"action selection must be one of {DEPLOYED_SELECTIONS}, got {selection!r}")
     dst = pathlib.Path(dst)
     if dst.exists():
         raise FileExistsError(f"{dst}: exists; a policy file is not overwritten")
-    d = read_torch_file(src)
-    if isinstance(d, Mapping) and d.get("format") == CHECKPOINT_FORMAT:
-        d = policy_payload_of_checkpoint(d, src)
+    d = read_policy_payload(src)
     Policy(d, src)   # refuses anything that is not a usable policy, naming src
     payload = {**d, "meta": {**dict(d["meta"]), **dict(meta or {}), "action_selection": selection}}
     atomic_torch_save(payload, dst)
@@ -198,11 +196,12 @@ def make_ensemble(members, dst: str | os.PathLike, selection: str = "median",
     """Write ``members`` (policy exports or training checkpoints, at least 2, trained alike) to
     ``dst`` as one ensemble policy file (``bimacppo_planner.policy.EnsemblePolicy``: each head acts
     on the mixture of the members' distributions, or by their vote with ``combine="vote"``) that
-    records ``selection`` as the way it acts when deployed. The metadata lists each member's file, training seed and budget. ``dst`` must
-    not exist (FileExistsError); CheckpointError names a member that is unreadable, an ensemble
-    itself, or trained with another observation, decoding or NMPC than the first."""
+    records ``selection`` as the way it acts when deployed. The metadata lists each member's file,
+    training seed and budget. ``dst`` must not exist (FileExistsError); CheckpointError names a
+    member that is unreadable, an ensemble itself, or trained with another observation, decoding
+    or NMPC than the first."""
     from bimacppo_planner.policy import (DEPLOYED_SELECTIONS, ENSEMBLE_COMBINES, ENSEMBLE_FORMAT,
-                                         EnsemblePolicy, policy_payload_of_checkpoint)
+                                         EnsemblePolicy, read_policy_payload)
 
     if selection not in DEPLOYED_SELECTIONS:
         raise ValueError(f"action selection must be one of {DEPLOYED_SELECTIONS}, got {selection!r}")
@@ -213,9 +212,7 @@ def make_ensemble(members, dst: str | os.PathLike, selection: str = "median",
         raise FileExistsError(f"{dst}: exists; a policy file is not overwritten")
     payloads, listed = [], []
     for src in members:
-        d = read_torch_file(src)
-        if isinstance(d, Mapping) and d.get("format") == CHECKPOINT_FORMAT:
-            d = policy_payload_of_checkpoint(d, src)
+        d = read_policy_payload(src)
         if isinstance(d, Mapping) and d.get("format") == ENSEMBLE_FORMAT:
             raise CheckpointError(src, "is an ensemble; list its members instead")
         Policy(d, src)   # refuses anything that is not a usable policy, naming src

@@ -123,6 +123,16 @@ def policy_payload_of_checkpoint(d: Mapping[str, Any], path: str | os.PathLike) 
         raise CheckpointError(path, f"training checkpoint lacks the actor: {type(exc).__name__}: {exc}") from None
 
 
+def read_policy_payload(path: str | os.PathLike) -> Any:
+    """What ``path`` holds as a policy file: a training checkpoint's policy export (its actor and
+    normaliser), else the file's content as read (an export, an ensemble, or anything else, which
+    the reader refuses). CheckpointError for an unreadable file."""
+    d = read_torch_file(path)
+    if isinstance(d, Mapping) and d.get("format") == CHECKPOINT_FORMAT:
+        d = policy_payload_of_checkpoint(d, path)
+    return d
+
+
 class Policy:
     """Deployed policy: single-observation inference in plain numpy (no autograd, no batching
     overhead), bit-for-bit the same argmax as the training actor."""
@@ -183,9 +193,7 @@ class Policy:
     def load(cls, path: str | os.PathLike) -> "Policy":
         """A policy export, an ensemble of them (an ``EnsemblePolicy``) or a full training
         checkpoint (its actor and normaliser)."""
-        d = read_torch_file(path)
-        if isinstance(d, Mapping) and d.get("format") == CHECKPOINT_FORMAT:
-            d = policy_payload_of_checkpoint(d, path)
+        d = read_policy_payload(path)
         if isinstance(d, Mapping) and d.get("format") == ENSEMBLE_FORMAT:
             return EnsemblePolicy(d, path)
         return cls(d, path)
