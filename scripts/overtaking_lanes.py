@@ -274,6 +274,8 @@ def main(argv=None) -> int:
     if not 1 <= args.episodes <= 1000:
         p.error(f"--episodes must be in 1..1000, got {args.episodes}")
     check_records_path(p, args.records)
+    if args.records is not None and args.policy is None:
+        p.error("--records needs a policy: the distances alone have no per-scenario outcomes")
     if not 0 <= args.slow_svs <= N_SV:
         p.error(f"--slow-svs must be in 0..{N_SV}, got {args.slow_svs}")
     c = distances(args.seed_set, args.episodes, args.slow_svs)

@@ -278,7 +278,8 @@ def test_records_name_each_scenario_and_are_never_overwritten(tmp_path, capsys):
     before = out.read_text()
     for argv, mod in (([policy, "--episodes", "1", "--records", str(out)], script),
                       ([policy, "--episodes", "1", "--records", str(tmp_path / "no" / "r.jsonl")], script),
-                      (["--episodes", "1", "--records", str(out)], probe)):
+                      (["--episodes", "1", "--records", str(out)], probe),
+                      (["--episodes", "1", "--records", str(tmp_path / "none.jsonl")], script)):
         with pytest.raises(SystemExit) as e:
             mod.main(argv)
         err = capsys.readouterr().err
