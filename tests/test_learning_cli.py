@@ -227,7 +227,6 @@ def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
          "its agent takes observations of size 16 and actions nvec=[5, 5, 3]; this run's env config gives 12"),
         ([str(ckpt), "--env-config", str(env_yaml("observation:\n  sv_clip: 30.0\nreward:\n  step: -0.1\n"))],
          "observation.sv_clip: 7.5 != 30.0; reward.step: -0.02 != -0.1"),
-        ([str(run / "policy.pt")], "expected 'bimacppo-ppo-checkpoint'"),
     ]
     for k, (extra, says) in enumerate(cases):
         out = tmp_path / f"r{k}"
@@ -236,6 +235,54 @@ def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
         assert rc == 2, extra
         assert says in _one_error_line(capsys.readouterr().err, "bimacppo-train"), extra
         assert not out.exists()
+
+
+def test_a_fine_tune_can_start_from_a_policy_export_whose_critic_warms_up_first(trained, tmp_path, capsys, caplog):
+    """A policy export has no critic: the fine-tune takes its actor and normaliser, a fresh
+    critic and the packaged PPO config with the export's networks; ppo.critic_warmup_updates
+    holds the actor still while that critic is fitted (the actor is then the export's exactly),
+    a warm-up of 0 is warned about, and an ensemble is refused on one line before writing."""
+    import logging
+
+    import torch
+
+    from bimacppo_learning.checkpoint import load_checkpoint, make_ensemble
+    from bimacppo_learning.trainer import load_fine_tune_source
+
+    _, cfg, run = trained
+    export = run / "policy.pt"
+    exported = torch.load(export, weights_only=True)
+    agent, meta, fresh = load_fine_tune_source(export, seed=4)
+    assert fresh and meta["env_config"] == exported["meta"]["env_config"]
+    assert all(torch.equal(exported["actor"][k], v) for k, v in agent.actor.state_dict().items())
+    assert torch.equal(torch.as_tensor(agent.obs_rms.mean), torch.as_tensor(exported["obs_rms"]["mean"]))
+    assert agent.cfg.epochs == 20                              # the packaged config: an export records none
+    assert not load_fine_tune_source(sorted((run / "checkpoints").glob("*.pt"))[-1])[2]
+
+    warm = tmp_path / "warm.yaml"
+    warm.write_text(SMALL.replace("ppo:\n", "ppo:\n  critic_warmup_updates: 1000\n"))
+    out = tmp_path / "held"
+    assert train_main(["--episodes", "2", "--no-progress", "--init-policy", str(export), "--ppo-config", str(warm),
+                       "--run-dir", str(out)]) == 0
+    tuned = load_checkpoint(sorted((out / "checkpoints").glob("*.pt"))[-1])
+    assert tuned["counters"]["updates"] >= 1 and tuned["config"]["ppo"]["critic_warmup_updates"] == 1000
+    assert all(torch.equal(exported["actor"][k], v) for k, v in tuned["agent"]["actor"].items())
+    assert set(_tb_scalars(out, "update/actor_fitted")) == {0.0}
+
+    moved = tmp_path / "moved"
+    with caplog.at_level(logging.WARNING):
+        assert train_main(["--episodes", "2", "--no-progress", "--init-policy", str(export), "--ppo-config",
+                           str(cfg), "--run-dir", str(moved)]) == 0
+    assert "critic_warmup_updates is 0" in caplog.text
+    tuned = load_checkpoint(sorted((moved / "checkpoints").glob("*.pt"))[-1])
+    assert not all(torch.equal(exported["actor"][k], v) for k, v in tuned["agent"]["actor"].items())
+
+    ens = make_ensemble([export, export], tmp_path / "ens.pt")
+    capsys.readouterr()
+    assert train_main(["--episodes", "2", "--no-progress", "--init-policy", str(ens), "--run-dir",
+                       str(tmp_path / "e")]) == 2
+    assert "is an ensemble of policies" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert not (tmp_path / "e").exists()
 
 
 def _fine_tune_args(trained):

@@ -313,6 +313,34 @@ def test_a_zero_learning_rate_leaves_the_networks_as_they_were():
     assert not all(torch.equal(a, b) for a, b in zip(before, agent.actor.state_dict().values()))
 
 
+def test_an_update_without_the_actor_fits_the_critic_and_leaves_the_actor_and_its_moments():
+    """fit_actor=False (critic_warmup_updates): the actor's weights and Adam moments are those
+    of before, the critic moves towards the returns, and the stats still report the actor's loss."""
+    agent = PPO(4, NVEC, PPOConfig(minibatch_size=64, epochs=3), seed=3)
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(128, 4)).astype(np.float32)
+    ret = (2.0 * obs[:, 0] + 1.0).astype(np.float32)
+    acts, logp, _ = agent.act(obs)
+    adv = np.where(acts[:, 0] == 2, 1.0, -1.0).astype(np.float32)
+    agent.update(obs, acts, logp, adv, ret)            # the actor has moments now
+    actor = [t.clone() for t in agent.actor.state_dict().values()]
+    moments = {k: v.clone() for st in agent.actor_opt.state.values() for k, v in st.items() if torch.is_tensor(v)}
+    critic = [t.clone() for t in agent.critic.state_dict().values()]
+    mse = lambda: float(((agent.value(obs) - ret) ** 2).mean())  # noqa: E731
+    before = mse()
+    acts, logp, _ = agent.act(obs)
+    stats = agent.update(obs, acts, logp, adv, ret, fit_actor=False)
+    assert all(torch.equal(a, b) for a, b in zip(actor, agent.actor.state_dict().values()))
+    after_moments = {k: v for st in agent.actor_opt.state.values() for k, v in st.items() if torch.is_tensor(v)}
+    assert all(torch.equal(moments[k], after_moments[k]) for k in moments)
+    assert not all(torch.equal(a, b) for a, b in zip(critic, agent.critic.state_dict().values()))
+    assert mse() < before
+    assert stats["actor_fitted"] == 0.0 and stats["actor_grad_norm"] == 0.0 and np.isfinite(stats["policy_loss"])
+    assert stats["approx_kl"] == pytest.approx(0.0, abs=1e-6)
+    assert agent.update(obs, acts, logp, adv, ret)["actor_fitted"] == 1.0
+    assert not all(torch.equal(a, b) for a, b in zip(actor, agent.actor.state_dict().values()))
+
+
 def test_an_agent_adopts_a_fine_tunes_config_but_not_another_network():
     src = PPO(4, NVEC, PPOConfig(minibatch_size=64, epochs=2), seed=3)
     weights = [t.clone() for t in src.actor.state_dict().values()]

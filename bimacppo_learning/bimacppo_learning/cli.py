@@ -56,7 +56,8 @@ def _train_parser() -> argparse.ArgumentParser:
     p.add_argument("--curriculum-config", default=None,
                    help="YAML for the scheduler (default: the packaged one for that curriculum)")
     p.add_argument("--init-policy", type=Path, default=None,
-                   help="start from this training checkpoint (fine-tuning, e.g. overtaking)")
+                   help="start from this training checkpoint (fine-tuning, e.g. overtaking), or from a policy "
+                        "export, whose critic then starts untrained (see ppo.critic_warmup_updates)")
     p.add_argument("--fine-tune-reward", action="store_true",
                    help="with --init-policy: the fine-tune trains with the reward section of --env-config; "
                         "only observation and action must match the checkpoint's")
@@ -208,7 +209,7 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
     from .checkpoint import (CheckpointError, config_differences, latest_checkpoint, load_checkpoint,
                              run_meta_of)
     from .ppo_config import config_from_dict, config_to_dict
-    from .trainer import load_agent
+    from .trainer import load_fine_tune_source
 
     path = latest = latest_checkpoint(run_dir / "checkpoints")
     try:
@@ -218,8 +219,7 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
         agent = None
         if args.init_policy is not None:
             path = args.init_policy
-            meta = run_meta_of(load_checkpoint(path), path)
-            agent = load_agent(path)
+            agent, meta, fresh_critic = load_fine_tune_source(path, seed=args.seed)
             if args.ppo_config is None:
                 pcfg = agent.cfg
             else:
@@ -232,6 +232,10 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
                     agent.adopt_config(pcfg)
                 except ValueError as exc:
                     return f"{path}: {exc}", None, pcfg
+            if fresh_critic and pcfg.critic_warmup_updates == 0:
+                logging.getLogger(__name__).warning(
+                    "%s is a policy export: the critic starts untrained and ppo.critic_warmup_updates is 0, "
+                    "so the first updates move the actor along an untrained critic's advantages", path)
             widened = False
             if args.fine_tune_observation:
                 why, agent = widen_for(path, agent, meta, env_cfg)

@@ -202,12 +202,14 @@ class PPO:
 
     # -------------------------------------------------------------------- update
     def update(self, obs: np.ndarray, actions: np.ndarray, old_logp: np.ndarray,
-               advantages: np.ndarray, returns: np.ndarray) -> dict[str, float]:
+               advantages: np.ndarray, returns: np.ndarray, fit_actor: bool = True) -> dict[str, float]:
         """`epochs` passes of shuffled minibatches over one flattened rollout.
 
         Actor loss = clipped surrogate - entropy coefficient * entropy (``self.entropy_coef``, the
         config's value moved by its schedule in ``set_progress``); critic loss = MSE to the GAE
-        returns; each network has its own optimiser and grad-norm clip.
+        returns; each network has its own optimiser and grad-norm clip. ``fit_actor`` False fits
+        the critic alone (``critic_warmup_updates``): the actor's weights and optimiser moments
+        stay as they are, and its losses are still reported.
         """
         c = self.cfg
         n = obs.shape[0]
@@ -236,15 +238,19 @@ class PPO:
                 adv = ADV[idx]
                 if c.normalize_advantages and adv.numel() > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                d = self.dist(O[idx])
-                new_lp = d.log_prob(A[idx])
-                pl, cf, kl = clipped_surrogate(new_lp, LP[idx], adv, c.clip_eps)
-                ent = d.entropy().mean()
-                actor_loss = pl - self.entropy_coef * ent
-                self.actor_opt.zero_grad(set_to_none=True)
-                actor_loss.backward()
-                agn = nn.utils.clip_grad_norm_(self.actor.parameters(), c.max_grad_norm)
-                self.actor_opt.step()
+                with torch.set_grad_enabled(fit_actor):
+                    d = self.dist(O[idx])
+                    new_lp = d.log_prob(A[idx])
+                    pl, cf, kl = clipped_surrogate(new_lp, LP[idx], adv, c.clip_eps)
+                    ent = d.entropy().mean()
+                if fit_actor:
+                    actor_loss = pl - self.entropy_coef * ent
+                    self.actor_opt.zero_grad(set_to_none=True)
+                    actor_loss.backward()
+                    agn = nn.utils.clip_grad_norm_(self.actor.parameters(), c.max_grad_norm)
+                    self.actor_opt.step()
+                else:
+                    agn = torch.tensor(0.0)
 
                 v = self.critic(O[idx]).squeeze(-1)
                 vl = 0.5 * (v - RET[idx]).pow(2).mean()
@@ -271,6 +277,7 @@ class PPO:
             stats["explained_variance"] = (float(1.0 - (RET - v_pred).var() / var_ret)
                                            if n > 1 and float(var_ret) > 0 else float("nan"))
         stats["epochs"] = float(epochs_run)
+        stats["actor_fitted"] = float(fit_actor)
         stats["early_stop"] = float(stop)
         stats["minibatch_steps"] = float(steps)
         return stats

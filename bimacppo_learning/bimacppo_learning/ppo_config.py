@@ -54,6 +54,7 @@ class PPOConfig:
     init_gain_hidden: float = setting(**_POSITIVE)
     init_gain_policy: float = setting(**_POSITIVE)
     init_gain_value: float = setting(**_POSITIVE)
+    critic_warmup_updates: int = setting(lo=0)
 
     @staticmethod
     def schedule_fraction(schedule: str, final_fraction: float, progress: float) -> float:

@@ -360,8 +360,8 @@ class Trainer:
         acting_threads = torch.get_num_threads()
         torch.set_num_threads(self.tcfg.update_threads or os.cpu_count() or 1)
         try:
-                stats = agent.update(data["obs"], data["actions"], data["logp"], data["advantages"],
-                                 data["returns"])
+            stats = agent.update(data["obs"], data["actions"], data["logp"], data["advantages"],
+                                 data["returns"], fit_actor=self.updates >= cfg.critic_warmup_updates)
         finally:
             torch.set_num_threads(acting_threads)
         stats["update_s"] = time.monotonic() - t0
@@ -380,13 +380,49 @@ class Trainer:
                            self.run_dir, self.history_path, self.last_checkpoint, dict(self.timing))
 
 
-def load_agent(path: str | os.PathLike) -> PPO:
-    """Rebuild a full PPO agent (e.g. for fine-tuning, paper §IV-C) from a training checkpoint."""
-    d = load_checkpoint(path)
+def load_agent(path: str | os.PathLike, seed: int = 0) -> PPO:
+    """Rebuild a full PPO agent (e.g. for fine-tuning, paper §IV-C) from a training checkpoint or
+    a policy export (``load_fine_tune_source``)."""
+    return load_fine_tune_source(path, seed)[0]
+
+
+def load_fine_tune_source(path: str | os.PathLike, seed: int = 0) -> tuple[PPO, dict, bool]:
+    """(agent, run metadata, whether the critic is fresh) for a fine-tune from ``path``.
+
+    A training checkpoint gives its whole agent (actor, critic, optimiser moments, normaliser)
+    under the PPO config it was trained with. A policy export carries only what acting needs,
+    so the agent gets its actor and normaliser under the packaged PPO config with the export's
+    network shape, a critic initialised from ``seed``, and fresh optimisers; the run's
+    ``critic_warmup_updates`` then fits that critic before the actor moves. Both refuse an
+    ensemble, a corrupt file or one that is no policy with a CheckpointError naming ``path``."""
+    import dataclasses
+
+    from bimacppo_planner.policy import ENSEMBLE_FORMAT, POLICY_FORMAT, Policy, read_torch_file
+
+    from .checkpoint import run_meta_of
+    from .ppo import check_state_shapes
+
+    d = read_torch_file(path)
+    fmt = d.get("format") if isinstance(d, Mapping) else None
+    if fmt == ENSEMBLE_FORMAT:
+        raise CheckpointError(path, "is an ensemble of policies; fine-tune one of its members instead")
+    if fmt != POLICY_FORMAT:
+        d = load_checkpoint(path)
+        try:
+            pcfg, _ = config_from_dict(d["config"], source=str(path))
+            agent = PPO(int(d["agent"]["obs_dim"]), list(d["agent"]["nvec"]), pcfg, seed=seed)
+        except (ValueError, TypeError, KeyError) as exc:
+            raise CheckpointError(path, f"cannot rebuild the agent: {exc}") from None
+        restore_agent(agent, d["agent"], path)
+        return agent, run_meta_of(d, path), False
+    pol = Policy(d, path)          # refuses a malformed or non-finite export, naming path
     try:
-        pcfg, _ = config_from_dict(d["config"], source=str(path))
-        agent = PPO(int(d["agent"]["obs_dim"]), list(d["agent"]["nvec"]), pcfg)
-    except (ValueError, TypeError, KeyError) as exc:
+        pcfg = dataclasses.replace(load_config()[0], hidden_sizes=pol.hidden_sizes,
+                                   activation=pol.activation, obs_norm=pol.obs_norm)
+        agent = PPO(pol.obs_dim, list(pol.nvec), pcfg, seed=seed)
+        check_state_shapes("actor", agent.actor.state_dict(), d["actor"])
+        agent.actor.load_state_dict(d["actor"])
+        agent.obs_rms.load_state_dict(d["obs_rms"])
+    except (ValueError, TypeError, KeyError, RuntimeError) as exc:
         raise CheckpointError(path, f"cannot rebuild the agent: {exc}") from None
-    restore_agent(agent, d["agent"], path)
-    return agent
+    return agent, dict(pol.meta), True
