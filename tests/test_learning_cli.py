@@ -237,7 +237,8 @@ def test_init_policy_refusals(trained, tmp_path, env_yaml, capsys):
         assert not out.exists()
 
 
-def test_a_fine_tune_can_start_from_a_policy_export_whose_critic_warms_up_first(trained, tmp_path, capsys, caplog):
+def test_a_fine_tune_can_start_from_a_policy_export_whose_critic_warms_up_first(trained, tmp_path, env_yaml, capsys,
+                                                                                caplog):
     """A policy export has no critic: the fine-tune takes its actor and normaliser, a fresh
     critic and the packaged PPO config with the export's networks; ppo.critic_warmup_updates
     holds the actor still while that critic is fitted (the actor is then the export's exactly),
@@ -276,6 +277,13 @@ def test_a_fine_tune_can_start_from_a_policy_export_whose_critic_warms_up_first(
     assert "critic_warmup_updates is 0" in caplog.text
     tuned = load_checkpoint(sorted((moved / "checkpoints").glob("*.pt"))[-1])
     assert not all(torch.equal(exported["actor"][k], v) for k, v in tuned["agent"]["actor"].items())
+
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):   # a refused export is refused, not warned about
+        assert train_main(["--episodes", "2", "--no-progress", "--init-policy", str(export), "--env-config",
+                           str(env_yaml("observation:\n  max_sv: 2\n")), "--run-dir", str(tmp_path / "r")]) == 2
+    assert "pass the --env-config it was trained with" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
+    assert "critic_warmup_updates" not in caplog.text and not (tmp_path / "r").exists()
 
     ens = make_ensemble([export, export], tmp_path / "ens.pt")
     capsys.readouterr()

@@ -111,7 +111,8 @@ def check_checkpoint_fits(path: Path, obs_dim: int, nvec, run_meta_: dict, env_c
 
     if (int(obs_dim), tuple(int(n) for n in nvec)) != (env_cfg.obs_dim, tuple(env_cfg.nvec)):
         return (f"{path}: its agent takes observations of size {obs_dim} and actions nvec={list(nvec)}; "
-                f"this run's env config gives {env_cfg.obs_dim} and {list(env_cfg.nvec)}")
+                f"this run's env config gives {env_cfg.obs_dim} and {list(env_cfg.nvec)}: "
+                "pass the --env-config it was trained with")
     raw = run_meta_.get("env_config")
     try:
         saved = EnvConfig.load() if raw is None else EnvConfig.from_dict(raw, where=f"{path} (run env_config)")
@@ -232,10 +233,6 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
                     agent.adopt_config(pcfg)
                 except ValueError as exc:
                     return f"{path}: {exc}", None, pcfg
-            if fresh_critic and pcfg.critic_warmup_updates == 0:
-                logging.getLogger(__name__).warning(
-                    "%s is a policy export: the critic starts untrained and ppo.critic_warmup_updates is 0, "
-                    "so the first updates move the actor along an untrained critic's advantages", path)
             widened = False
             if args.fine_tune_observation:
                 why, agent = widen_for(path, agent, meta, env_cfg)
@@ -260,6 +257,10 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
                 sides = env_cfg.action.lane_change
                 set_head_prior(agent, LANE_CHANGE_HEAD,
                                [keep if side == 0 else (1.0 - keep) / (len(sides) - 1) for side in sides])
+            if fresh_critic and pcfg.critic_warmup_updates == 0:
+                logging.getLogger(__name__).warning(
+                    "%s is a policy export: the critic starts untrained and ppo.critic_warmup_updates is 0, "
+                    "so the first updates move the actor along an untrained critic's advantages", path)
         path = latest
         if args.resume and latest is not None:
             d = load_checkpoint(latest)
