@@ -52,7 +52,12 @@ def save_checkpoint(path: str | os.PathLike, payload: Mapping[str, Any]) -> None
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
     """Read and structurally validate a training checkpoint (shapes are checked on restore)."""
-    d = read_torch_file(path)
+    return check_checkpoint(read_torch_file(path), path)
+
+
+def check_checkpoint(d: Any, path: str | os.PathLike) -> dict:
+    """``d``, the content of ``path``, if it is a training checkpoint this code reads; else
+    CheckpointError naming ``path`` and the problem."""
     require_keys(path, d, _CKPT_KEYS, "checkpoint", CHECKPOINT_FORMAT)
     if d["version"] != FORMAT_VERSION:
         raise CheckpointError(path, f"format version {d['version']!r}, this code reads {FORMAT_VERSION}")

@@ -399,7 +399,7 @@ def load_fine_tune_source(path: str | os.PathLike, seed: int = 0) -> tuple[PPO, 
 
     from bimacppo_planner.policy import ENSEMBLE_FORMAT, POLICY_FORMAT, Policy, read_torch_file
 
-    from .checkpoint import run_meta_of
+    from .checkpoint import check_checkpoint, run_meta_of
     from .ppo import check_state_shapes
 
     d = read_torch_file(path)
@@ -407,7 +407,7 @@ def load_fine_tune_source(path: str | os.PathLike, seed: int = 0) -> tuple[PPO, 
     if fmt == ENSEMBLE_FORMAT:
         raise CheckpointError(path, "is an ensemble of policies; fine-tune one of its members instead")
     if fmt != POLICY_FORMAT:
-        d = load_checkpoint(path)
+        d = check_checkpoint(d, path)
         try:
             pcfg, _ = config_from_dict(d["config"], source=str(path))
             agent = PPO(int(d["agent"]["obs_dim"]), list(d["agent"]["nvec"]), pcfg, seed=seed)
