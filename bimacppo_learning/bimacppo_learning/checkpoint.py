@@ -19,8 +19,8 @@ from typing import Any, Mapping
 import torch
 
 from bimacppo_planner.policy import (CHECKPOINT_FORMAT, FORMAT_VERSION, POLICY_FORMAT,  # noqa: F401
-                                     CheckpointError, Policy, check_normaliser, read_torch_file, require_finite,
-                                     require_keys)
+                                     CheckpointError, Policy, check_normaliser, read_torch_file,
+                                     require_finite_weights, require_keys)
 
 CKPT_PATTERN = re.compile(r"^ckpt_ep(\d+)\.pt$")
 
@@ -64,8 +64,7 @@ def check_checkpoint(d: Any, path: str | os.PathLike) -> dict:
     agent = d["agent"]
     require_keys(path, agent, _AGENT_KEYS, "checkpoint['agent']", CHECKPOINT_FORMAT)
     for net in ("actor", "critic"):
-        if isinstance(agent[net], Mapping):
-            require_finite(path, {k: v for k, v in agent[net].items() if isinstance(v, torch.Tensor)}, net)
+        require_finite_weights(path, agent[net], net)
     if isinstance(agent["obs_rms"], Mapping):
         check_normaliser(path, agent["obs_rms"])
     return d
@@ -175,6 +174,20 @@ def export_policy(agent, path: str | os.PathLike, meta: Mapping[str, Any] | None
 
 
 
+def _new_policy_file(dst: str | os.PathLike, selection: str) -> pathlib.Path:
+    """``dst`` as a path for a new policy file that acts by ``selection``: ValueError for a
+    selection that is not deterministic, FileExistsError for a file that exists (a policy file is
+    never overwritten)."""
+    from bimacppo_planner.policy import DEPLOYED_SELECTIONS
+
+    if selection not in DEPLOYED_SELECTIONS:
+        raise ValueError(f"action selection must be one of {DEPLOYED_SELECTIONS}, got {selection!r}")
+    dst = pathlib.Path(dst)
+    if dst.exists():
+        raise FileExistsError(f"{dst}: exists; a policy file is not overwritten")
+    return dst
+
+
 def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selection: str,
                          meta: Mapping[str, Any] | None = None) -> pathlib.Path:
     """Write ``src`` (a policy export or a training checkpoint) to ``dst`` as a policy export
@@ -182,13 +195,9 @@ def set_action_selection(src: str | os.PathLike, dst: str | os.PathLike, selecti
     planner and ``bimacppo-evaluate`` then run it so unless told otherwise), and ``meta``'s
     entries beside the source's own metadata. The actor and normaliser are copied unchanged. ``dst`` must not exist (FileExistsError): a policy file is
     never overwritten. ValueError for a selection that is not deterministic."""
-    from bimacppo_planner.policy import DEPLOYED_SELECTIONS, read_policy_payload
+    from bimacppo_planner.policy import read_policy_payload
 
-    if selection not in DEPLOYED_SELECTIONS:
-        raise ValueError(f"action selection must be one of {DEPLOYED_SELECTIONS}, got {selection!r}")
-    dst = pathlib.Path(dst)
-    if dst.exists():
-        raise FileExistsError(f"{dst}: exists; a policy file is not overwritten")
+    dst = _new_policy_file(dst, selection)
     d = read_policy_payload(src)
     Policy(d, src)   # refuses anything that is not a usable policy, naming src
     payload = {**d, "meta": {**dict(d["meta"]), **dict(meta or {}), "action_selection": selection}}
@@ -205,16 +214,11 @@ def make_ensemble(members, dst: str | os.PathLike, selection: str = "median",
     training seed and budget. ``dst`` must not exist (FileExistsError); CheckpointError names a
     member that is unreadable, an ensemble itself, or trained with another observation, decoding
     or NMPC than the first."""
-    from bimacppo_planner.policy import (DEPLOYED_SELECTIONS, ENSEMBLE_COMBINES, ENSEMBLE_FORMAT,
-                                         EnsemblePolicy, read_policy_payload)
+    from bimacppo_planner.policy import ENSEMBLE_COMBINES, ENSEMBLE_FORMAT, EnsemblePolicy, read_policy_payload
 
-    if selection not in DEPLOYED_SELECTIONS:
-        raise ValueError(f"action selection must be one of {DEPLOYED_SELECTIONS}, got {selection!r}")
+    dst = _new_policy_file(dst, selection)
     if combine not in ENSEMBLE_COMBINES:
         raise ValueError(f"combine must be one of {ENSEMBLE_COMBINES}, got {combine!r}")
-    dst = pathlib.Path(dst)
-    if dst.exists():
-        raise FileExistsError(f"{dst}: exists; a policy file is not overwritten")
     payloads, listed = [], []
     for src in members:
         d = read_policy_payload(src)

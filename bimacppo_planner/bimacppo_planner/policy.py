@@ -94,6 +94,13 @@ def require_finite(path, tensors: Mapping[str, Any], what: str) -> None:
                                         "non-finite value(s) (NaN or inf): the file is corrupt")
 
 
+def require_finite_weights(path, state: Any, what: str) -> None:
+    """``require_finite`` over the tensors of a network's state dict ``state`` (named ``what``);
+    a state that is not a mapping is left to the shape checks that follow."""
+    if isinstance(state, Mapping):
+        require_finite(path, {k: v for k, v in state.items() if isinstance(v, torch.Tensor)}, what)
+
+
 def check_normaliser(path, rms: Mapping[str, Any]) -> None:
     """The observation normaliser's statistics can normalise: finite mean, a finite variance
     that is not negative, finite eps >= 0, clip > 0 and count >= 0; else CheckpointError naming
@@ -159,8 +166,7 @@ class Policy:
                                         f"{DEPLOYED_SELECTIONS}")
         sizes = [self.obs_dim, *self.hidden_sizes, sum(self.nvec)]
         actor = payload["actor"]
-        if isinstance(actor, Mapping):
-            require_finite(path, {k: v for k, v in actor.items() if isinstance(v, torch.Tensor)}, "actor")
+        require_finite_weights(path, actor, "actor")
         self.layers: list[tuple[np.ndarray, np.ndarray]] = []
         for k in range(len(sizes) - 1):
             wk, bk = f"{2 * k}.weight", f"{2 * k}.bias"
