@@ -13,7 +13,7 @@ import argparse
 import numpy as np
 
 from bimacppo_common.conventions import TASKS
-from bimacppo_learning.evaluate import evaluate
+from bimacppo_learning.evaluate import SEED_SETS, evaluate
 from bimacppo_planner.decision import EnvConfig
 
 
@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     p.add_argument("--n-sv", type=int, default=0)
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--env-config", default=None, help="variant YAML (default: the packaged env.yaml)")
-    p.add_argument("--seed-set", choices=("validation", "test"), default="validation")
+    p.add_argument("--seed-set", choices=sorted(SEED_SETS), default="validation")
     a = p.parse_args(argv)
     cfg = EnvConfig.load(a.env_config) if a.env_config else EnvConfig.load()
     keep = cfg.action.lane_change.index(0)

@@ -14,7 +14,7 @@ from collections import Counter
 
 from bimacppo_common.conventions import TASKS
 from bimacppo_learning.env import IntersectionEnv
-from bimacppo_learning.evaluate import (as_actor, check_action, default_selection, eval_seed, resolve_mpc_config,
+from bimacppo_learning.evaluate import (SEED_SETS, as_actor, check_action, default_selection, eval_seed, resolve_mpc_config,
                                         resolve_policy)
 from bimacppo_planner.policy import ACTION_SELECTIONS, with_selection
 
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     p.add_argument("--tasks", nargs="+", choices=TASKS, default=list(TASKS))
     p.add_argument("--n-sv", type=int, default=3)
     p.add_argument("--episodes", type=int, default=30)
-    p.add_argument("--seed-set", choices=("validation", "test"), default="validation")
+    p.add_argument("--seed-set", choices=sorted(SEED_SETS), default="validation")
     p.add_argument("--action", choices=ACTION_SELECTIONS, default=None,
                    help="how the policy picks each head's action (default: the way the file records)")
     a = p.parse_args(argv)

@@ -5,7 +5,6 @@ import json
 import pytest
 
 from bimacppo_learning.cli import evaluate_main, train_main
-from bimacppo_learning.evaluate import EVAL_SEED_BASE, eval_seed
 
 SMALL = """
 ppo:
@@ -101,19 +100,6 @@ def test_evaluate_rejects_corrupt_policy(tmp_path, capsys):
     bad.write_bytes(b"\x00" * 100)
     assert evaluate_main([str(bad), "--episodes", "1"]) == 2
     assert "policy.pt" in capsys.readouterr().err
-
-
-def test_evaluation_seeds_are_fixed_and_distinct():
-    seeds = {eval_seed(t, n, k) for t in range(3) for n in range(4) for k in range(100)}
-    assert len(seeds) == 1200 and min(seeds) >= EVAL_SEED_BASE
-    with pytest.raises(ValueError):
-        eval_seed(0, 0, 1000)
-    val = {eval_seed(t, n, k, "validation") for t in range(3) for n in range(4) for k in range(1000)}
-    test = {eval_seed(t, n, k, "test") for t in range(3) for n in range(4) for k in range(1000)}
-    assert len(val) == len(test) == 12_000 and not val & test         # choices never see a test scenario
-    assert seeds <= test
-    with pytest.raises(ValueError, match="unknown seed set 'train'"):
-        eval_seed(0, 0, 0, "train")
 
 
 def test_report_draws_figures_and_table_i(trained, tmp_path):

@@ -16,6 +16,8 @@ from bimacppo_curriculum import make_scheduler
 
 from bimacppo_planner.decision import ConfigError, EnvConfig
 
+from .seed_sets import SEED_SETS
+
 CURRICULA = ("bimab", "fixed", "random", "manual", "rd")
 MAPS = ("dual_lane_4way", "single_lane_4way", "three_lane_straight")
 
@@ -439,9 +441,10 @@ def _eval_parser() -> argparse.ArgumentParser:
                    help="YAML overlaying bimacppo_mpc/config/mpc.yaml (e.g. mpc_unbounded.yaml for a policy "
                         "trained without the rate bounds); default: the one the policy file records, else "
                         "the packaged one")
-    p.add_argument("--seed-set", choices=("validation", "test"), default="test",
+    p.add_argument("--seed-set", choices=sorted(SEED_SETS), default="test",
                    help="scenario seeds: validation (for choosing configs, checkpoints, variants) or test "
-                        "(reporting only); disjoint sets, default test")
+                        "(reporting only); validation2 / test2 are a second pair for a choice made afresh; "
+                        "disjoint sets, default test")
     from bimacppo_planner.policy import ACTION_SELECTIONS
 
     p.add_argument("--action", choices=ACTION_SELECTIONS, default=None,

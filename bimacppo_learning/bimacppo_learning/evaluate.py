@@ -1,10 +1,7 @@
 """The paper's evaluation protocol (§IV-B): every task x N_sv cell, fixed scenario seeds.
 
-Every method is evaluated on exactly the same scenarios: the scenario seed of episode k
-in cell (task j, N_sv i) is ``base + 10_000*j + 1_000*i + k``, far away from the seeds
-training draws (those come from the training RNG, uniformly in [0, 2^31)). There are two
-disjoint seed sets (``SEED_SETS``): ``validation``, for every choice (config, checkpoint,
-variant), and ``test``, only ever reported.
+Every method is evaluated on exactly the same scenarios, drawn from the seed sets of
+``seed_sets`` (``validation`` for every choice, ``test`` only ever reported).
 
 Any policy can be put through it (``evaluate(policy, ...)``): a policy file (export or training
 checkpoint; None = the shipped policy), or an object with ``predict(obs)`` (Stable-Baselines3
@@ -46,9 +43,8 @@ from scipy.stats import binomtest
 from bimacppo_planner.policy import CheckpointError
 
 from .comfort import Comfort
+from .seed_sets import SEED_SETS, eval_seed
 
-EVAL_SEED_BASE = 1_000_000          # the test set
-SEED_SETS = {"test": EVAL_SEED_BASE, "validation": 2_000_000}
 CI_LEVEL = 0.95     # confidence of the per-cell success interval in every table and CSV
 POLICY = "policy"          # CellResult.policy of the evaluated policy's cells
 RANDOM = "random"          # ... and of the random baseline's
@@ -56,14 +52,6 @@ RANDOM = "random"          # ... and of the random baseline's
 
 class EvaluationError(Exception):
     """The evaluation could not run; the message is one line naming the cell and the cause."""
-
-
-def eval_seed(task: int, n_sv: int, k: int, seed_set: str = "test") -> int:
-    if not (0 <= k < 1_000):
-        raise ValueError(f"episode index {k} out of range: at most 1000 evaluation episodes per cell")
-    if seed_set not in SEED_SETS:
-        raise ValueError(f"unknown seed set {seed_set!r}; expected one of {sorted(SEED_SETS)}")
-    return SEED_SETS[seed_set] + 10_000 * task + 1_000 * n_sv + k
 
 
 @dataclass
