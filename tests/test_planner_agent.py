@@ -199,7 +199,8 @@ def test_planner_decodes_lane_changes_from_where_the_ev_drives_as_the_env_does(t
         assert list(obs[-2:]) == [2.0, 0.0]
 
 
-@pytest.mark.parametrize("name, lane_change_from, leads", [("bimacppo_three_lane_overtake_leads.pt", "chosen", True),
+@pytest.mark.parametrize("name, lane_change_from, leads", [("bimacppo_three_lane_overtake_continued.pt", "chosen", True),
+                                                           ("bimacppo_three_lane_overtake_leads.pt", "chosen", True),
                                                            ("bimacppo_three_lane_overtake_ev.pt", "ev", False)])
 def test_the_overtaking_policy_runs_on_the_three_lane_road_as_evaluated(name, lane_change_from, leads):
     """studies/policies' overtaking fine-tunes record their decoding (lane changes from the
