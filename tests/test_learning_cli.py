@@ -279,6 +279,43 @@ def test_a_fine_tune_can_start_from_a_policy_export_whose_critic_warms_up_first(
     assert not (tmp_path / "e").exists()
 
 
+def test_a_fine_tune_records_its_whole_lineage_and_a_resume_keeps_it(trained, tmp_path):
+    """A fine-tune records the file it started from (name, SHA-256 of its bytes, curriculum,
+    map, seed, episodes) in run.json, its checkpoints and its exported policy; a fine-tune of
+    that fine-tune nests the first record, so a policy file names every file it descends from;
+    a resumed run keeps the lineage of its checkpoint; a run from scratch records none."""
+    import hashlib
+
+    import torch
+
+    from bimacppo_learning.checkpoint import load_checkpoint, run_meta_of
+
+    _, cfg, run = trained
+    export = run / "policy.pt"
+    first, second = tmp_path / "first", tmp_path / "second"
+    assert train_main(["--episodes", "2", "--no-progress", "--init-policy", str(export), "--ppo-config", str(cfg),
+                       "--run-dir", str(first)]) == 0
+    src_meta = torch.load(export, weights_only=True)["meta"]
+    assert "fine_tuned_from" not in src_meta                                  # trained from scratch
+    rec = torch.load(first / "policy.pt", weights_only=True)["meta"]["fine_tuned_from"]
+    assert rec == {"file": "policy.pt", "sha256": hashlib.sha256(export.read_bytes()).hexdigest(),
+                   "curriculum": src_meta["curriculum"], "map": src_meta["map"], "seed": src_meta["seed"],
+                   "episodes": src_meta["episodes"]}
+    ckpt = sorted((first / "checkpoints").glob("*.pt"))[-1]
+    assert run_meta_of(load_checkpoint(ckpt), ckpt)["fine_tuned_from"] == rec
+    assert json.loads((first / "run.json").read_text())["fine_tuned_from"] == rec
+
+    assert train_main(["--episodes", "2", "--no-progress", "--init-policy", str(ckpt), "--seed", "3",
+                       "--run-dir", str(second)]) == 0
+    rec2 = torch.load(second / "policy.pt", weights_only=True)["meta"]["fine_tuned_from"]
+    assert rec2["file"] == ckpt.name and rec2["sha256"] == hashlib.sha256(ckpt.read_bytes()).hexdigest()
+    assert rec2["episodes"] == load_checkpoint(ckpt)["counters"]["episodes"] and rec2["fine_tuned_from"] == rec
+
+    assert train_main(["--episodes", "4", "--no-progress", "--resume", "--seed", "3", "--ppo-config", str(cfg),
+                       "--run-dir", str(second)]) == 0
+    assert torch.load(second / "policy.pt", weights_only=True)["meta"]["fine_tuned_from"] == rec2
+
+
 def _fine_tune_args(trained):
     """(PPO config, the trained run, the argv of a 2-episode fine-tune from its newest checkpoint)."""
     _, cfg, run = trained
@@ -639,7 +676,7 @@ def test_a_fine_tune_can_start_its_lane_change_head_from_a_keep_prior(trained, t
     ckpt = base[-1]
     args = _train_parser().parse_args([*base, "--fine-tune-lane-prior", "0.9", "--run-dir", str(tmp_path / "p")])
     pcfg, _ = load_config(cfg)
-    why, agent, _ = _preflight(args, EnvConfig.load(), pcfg, tmp_path / "p", MPCConfig.load())
+    why, agent, _, _ = _preflight(args, EnvConfig.load(), pcfg, tmp_path / "p", MPCConfig.load())
     assert why is None
     source = load_agent(ckpt)
     obs = torch.from_numpy(np.random.default_rng(0).normal(0.0, 3.0, size=(20, agent.obs_dim)).astype(np.float32))

@@ -70,6 +70,26 @@ def check_checkpoint(d: Any, path: str | os.PathLike) -> dict:
     return d
 
 
+def fine_tune_source_record(path: str | os.PathLike, meta: Mapping[str, Any]) -> dict:
+    """What a fine-tune records of the file it started from (run metadata ``fine_tuned_from``,
+    kept in its checkpoints and exported policy): the file's name and SHA-256, the source's
+    curriculum, map, seed and episodes, and the source's own ``fine_tuned_from``. So a policy
+    file states its whole lineage, e.g. that a 9,000-episode fine-tune started from an
+    18,000-episode fine-tune of a 7,500-episode run, and each step names the exact bytes it
+    started from. ``meta`` is the source's run metadata (with ``episodes``)."""
+    import hashlib
+
+    path = pathlib.Path(path)
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    record = {"file": path.name, "sha256": digest}
+    for key in ("curriculum", "map", "seed", "episodes"):
+        if meta.get(key) is not None:
+            record[key] = meta[key]
+    if meta.get("fine_tuned_from") is not None:
+        record["fine_tuned_from"] = meta["fine_tuned_from"]
+    return record
+
+
 def restore_agent(agent, state: Mapping[str, Any], path: str | os.PathLike) -> None:
     """Load ``state`` into ``agent``; a dimension or tensor-shape mismatch -> CheckpointError."""
     try:

@@ -205,12 +205,14 @@ def _world_differs(path: Path, run_meta_: dict, world_cfg) -> str | None:
 
 def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg=None):
     """Every check a run can fail before it starts, so that a refused run leaves its directory as
-    it was. Returns (error message or None, the --init-policy agent or None, the run's PPO config).
+    it was. Returns (error message or None, the --init-policy agent or None, the run's PPO config,
+    the record of the file the weights descend from or None).
 
     A fine-tune (--init-policy) trains under its source's PPO config unless --ppo-config names
-    one; the agent adopts the run's config, so what trains is what the checkpoints record."""
-    from .checkpoint import (CheckpointError, config_differences, latest_checkpoint, load_checkpoint,
-                             run_meta_of)
+    one; the agent adopts the run's config, so what trains is what the checkpoints record. A
+    resumed run's weights come from its checkpoint, so its lineage is the checkpoint's."""
+    from .checkpoint import (CheckpointError, config_differences, fine_tune_source_record, latest_checkpoint,
+                             load_checkpoint, run_meta_of)
     from .ppo_config import config_from_dict, config_to_dict
     from .trainer import load_fine_tune_source
 
@@ -218,11 +220,12 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
     try:
         if latest is not None and not args.resume:
             return (f"{run_dir} already holds checkpoints ({latest.name}): pass --resume to continue it, "
-                    "or give another --run-dir"), None, pcfg
-        agent = None
+                    "or give another --run-dir"), None, pcfg, None
+        agent = source = None
         if args.init_policy is not None:
             path = args.init_policy
             agent, meta, fresh_critic = load_fine_tune_source(path, seed=args.seed)
+            source = fine_tune_source_record(path, meta)
             if args.ppo_config is None:
                 pcfg = agent.cfg
             else:
@@ -234,12 +237,12 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
                 try:
                     agent.adopt_config(pcfg)
                 except ValueError as exc:
-                    return f"{path}: {exc}", None, pcfg
+                    return f"{path}: {exc}", None, pcfg, None
             widened = False
             if args.fine_tune_observation:
                 why, agent = widen_for(path, agent, meta, env_cfg)
                 if why:
-                    return why, None, pcfg
+                    return why, None, pcfg, None
                 widened = True
             sections = tuple(name for name, free in (("observation", widened), ("action", args.fine_tune_action),
                                                      ("reward", args.fine_tune_reward)) if not free)
@@ -249,7 +252,7 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
             if why and not args.fine_tune_action and "action." in why:
                 why += " (--fine-tune-action lets a fine-tune change how actions decode)"
             if why:
-                return why, None, pcfg
+                return why, None, pcfg, None
             if args.fine_tune_lane_prior is not None:
                 from bimacppo_planner.decision import LANE_CHANGE_HEAD
 
@@ -266,26 +269,27 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
         path = latest
         if args.resume and latest is not None:
             d = load_checkpoint(latest)
+            source = run_meta_of(d, latest).get("fine_tuned_from")
             why = check_checkpoint_fits(latest, d["agent"]["obs_dim"], d["agent"]["nvec"],
                                         run_meta_of(d, latest), env_cfg, mpc_cfg)
             if why:
-                return why, None, pcfg
+                return why, None, pcfg, None
             try:
                 saved_pcfg, _ = config_from_dict(d["config"], source=str(latest))
             except ValueError as exc:
-                return f"{latest}: config is invalid: {exc}", None, pcfg
+                return f"{latest}: config is invalid: {exc}", None, pcfg, None
             diff = config_differences(config_to_dict(saved_pcfg)["ppo"], config_to_dict(pcfg)["ppo"], "ppo")
             if diff:
                 return (f"{latest}: was trained with another PPO config ({'; '.join(diff)}; checkpoint != "
-                        "this run): resume with the same ppo section"), None, pcfg
+                        "this run): resume with the same ppo section"), None, pcfg, None
             why = _world_differs(latest, run_meta_of(d, latest), world_cfg)
             if why:
-                return why, None, pcfg
+                return why, None, pcfg, None
     except CheckpointError as exc:
-        return str(exc), None, pcfg
+        return str(exc), None, pcfg, None
     except (KeyError, TypeError, ValueError) as exc:
-        return f"{path}: malformed checkpoint ({type(exc).__name__}: {exc})", None, pcfg
-    return None, agent, pcfg
+        return f"{path}: malformed checkpoint ({type(exc).__name__}: {exc})", None, pcfg, None
+    return None, agent, pcfg, source
 
 
 def train_main(argv=None) -> int:
@@ -331,7 +335,7 @@ def train_main(argv=None) -> int:
     except (ConfigError, ValueError, OSError) as exc:
         return fail(prog, exc)
     run_dir = args.run_dir or Path("runs") / f"{args.curriculum}-s{args.seed}"
-    why, agent, pcfg = _preflight(args, env_cfg, pcfg, run_dir, mpc_cfg, world_cfg)
+    why, agent, pcfg, source = _preflight(args, env_cfg, pcfg, run_dir, mpc_cfg, world_cfg)
     if why:
         return fail(prog, why)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -340,6 +344,7 @@ def train_main(argv=None) -> int:
         "mpc": args.mpc, "slow_svs": args.slow_svs, "env_config": env_cfg.to_dict(),
         "mpc_config": mpc_cfg.to_dict(), "argv": sys.argv[1:] if argv is None else list(argv),
         **({} if world_cfg is None else {"world_config": world_config_dict(world_cfg)}),
+        **({} if source is None else {"fine_tuned_from": source}),
     }, indent=2))
     env_fn = make_env(args.map, env_cfg, args.mpc, args.slow_svs, mpc_config=mpc_cfg, world_config=world_cfg)
     from bimacppo_sim import load_map
@@ -350,7 +355,7 @@ def train_main(argv=None) -> int:
               "arms all run as that task (its arm statistics are then not meaningful)", file=sys.stderr)
     trainer = Trainer(env_fn, sched, run_dir, pcfg, tcfg, agent=agent,
                       run_meta=run_meta(env_cfg, args.curriculum, args.map, args.seed, args.mpc, mpc_cfg,
-                                        world_cfg))
+                                        world_cfg, fine_tuned_from=source))
     try:
         res = trainer.train(args.episodes, resume=args.resume)
     except CheckpointError as exc:
@@ -372,12 +377,14 @@ def world_config_dict(world_cfg) -> dict:
 
 
 def run_meta(env_cfg: EnvConfig, curriculum: str, map_id: str, seed: int, mpc: str, mpc_cfg=None,
-             world_cfg=None) -> dict:
+             world_cfg=None, fine_tuned_from: dict | None = None) -> dict:
     """How a run was trained, as stored in its checkpoints and exported policy (Trainer.run_meta):
     deployment (planner node, evaluation) rebuilds the same observation and decoding from it, and
     evaluation runs the NMPC it was trained with (``mpc_cfg``; None: the packaged mpc.yaml, what
     the env then runs). A training world other than the packaged one (``world_cfg``) is recorded
-    for the record only: evaluation never uses it, so every policy meets the same scenarios."""
+    for the record only: evaluation never uses it, so every policy meets the same scenarios.
+    ``fine_tuned_from`` (``checkpoint.fine_tune_source_record``) is the file a fine-tune's
+    weights started from, with that file's own lineage."""
     if mpc_cfg is None:
         from bimacppo_mpc import MPCConfig
 
@@ -386,6 +393,8 @@ def run_meta(env_cfg: EnvConfig, curriculum: str, map_id: str, seed: int, mpc: s
             "map": map_id, "seed": seed, "mpc": mpc}
     if world_cfg is not None:
         meta["world_config"] = world_config_dict(world_cfg)
+    if fine_tuned_from is not None:
+        meta["fine_tuned_from"] = dict(fine_tuned_from)
     return meta
 
 

@@ -414,7 +414,12 @@ def load_fine_tune_source(path: str | os.PathLike, seed: int = 0) -> tuple[PPO, 
         except (ValueError, TypeError, KeyError) as exc:
             raise CheckpointError(path, f"cannot rebuild the agent: {exc}") from None
         restore_agent(agent, d["agent"], path)
-        return agent, run_meta_of(d, path), False
+        meta = run_meta_of(d, path)
+        try:
+            meta.setdefault("episodes", int(d["counters"]["episodes"]))
+        except (KeyError, TypeError, ValueError):
+            pass
+        return agent, meta, False
     pol = Policy(d, path)          # refuses a malformed or non-finite export, naming path
     try:
         pcfg = dataclasses.replace(load_config()[0], hidden_sizes=pol.hidden_sizes,
