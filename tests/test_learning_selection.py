@@ -64,6 +64,33 @@ def run(tmp_path_factory):
 CELLS = ["--episodes", "1", "--n-sv", "0", "--tasks", "straight", "--workers", "1"]
 
 
+def test_select_chooses_on_the_second_validation_set_when_told_and_never_on_a_test_set(run, tmp_path, monkeypatch,
+                                                                                          capsys):
+    """--seed-set validation2 evaluates every checkpoint on the second pair's validation set and
+    records it; a test set is not a choice the parser offers (exit 2, nothing written), nor one
+    score_checkpoints accepts."""
+    from bimacppo_learning.selection import score_checkpoints
+
+    seen = []
+    real = evaluate_mod.evaluate
+
+    def spy(*a, **kw):
+        seen.append(kw["seed_set"])
+        return real(*a, **kw)
+
+    monkeypatch.setattr(evaluate_mod, "evaluate", spy)
+    out = tmp_path / "chosen2.pt"
+    assert main([str(run), str(out), *CELLS, "--seed-set", "validation2"]) == 0
+    assert seen and set(seen) == {"validation2"}
+    assert Policy.load(out).meta["chosen_on_validation"]["seed_set"] == "validation2"
+    for name in ("test", "test2"):
+        with pytest.raises(SystemExit) as e:
+            main([str(run), str(tmp_path / f"{name}.pt"), *CELLS, "--seed-set", name])
+        assert e.value.code == 2 and not (tmp_path / f"{name}.pt").exists()
+        with pytest.raises(ValueError, match="only reports"):
+            score_checkpoints([], n_svs=[0], tasks=[1], episodes=1, seed_set=name)
+
+
 def test_select_writes_the_chosen_checkpoint_as_a_policy_on_validation_seeds_only(run, tmp_path, monkeypatch,
                                                                                    capsys):
     seen = []

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 EVAL_SEED_BASE = 1_000_000          # the test set
 SEED_SETS = {"test": EVAL_SEED_BASE, "validation": 2_000_000, "test2": 3_000_000, "validation2": 4_000_000}
+CHOOSING_SETS = ("validation", "validation2")   # the sets a choice may read; the others only report
 
 
 def eval_seed(task: int, n_sv: int, k: int, seed_set: str = "test") -> int:

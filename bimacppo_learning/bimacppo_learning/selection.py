@@ -89,14 +89,19 @@ def candidate_checkpoints(run_dir: str | pathlib.Path, from_episodes: int = 0) -
 def score_checkpoints(checkpoints: Iterable[tuple[int, pathlib.Path]], *, n_svs: Sequence[int],
                       tasks: Sequence[int], episodes: int, workers: int = 2, action_selection: str = "median",
                       mpc_config: Any = None, map_id: str = "dual_lane_4way", slow_svs: int = 0,
-                      progress: Callable[[pathlib.Path, Any], None] | None = None) -> list[Candidate]:
-    """Evaluate every checkpoint on the validation seeds (the same scenarios for each)."""
+                      progress: Callable[[pathlib.Path, Any], None] | None = None,
+                      seed_set: str = "validation") -> list[Candidate]:
+    """Evaluate every checkpoint on a validation seed set (the same scenarios for each); a test
+    set is refused (ValueError), since it never chooses."""
     from .evaluate import evaluate
+    from .seed_sets import CHOOSING_SETS
 
+    if seed_set not in CHOOSING_SETS:
+        raise ValueError(f"seed set {seed_set!r} only reports; choose on one of {list(CHOOSING_SETS)}")
     out = []
     for ep, path in checkpoints:
         cells = evaluate(str(path), map_id, n_svs, tasks, episodes, workers, random_row=False,
-                         seed_set="validation", mpc_config=mpc_config, action_selection=action_selection,
+                         seed_set=seed_set, mpc_config=mpc_config, action_selection=action_selection,
                          slow_svs=slow_svs,
                          progress=(lambda cell, path=path: progress(path, cell)) if progress else None)
         out.append(Candidate(pathlib.Path(path), int(ep), {(c.task, c.n_sv): c.pct("success") for c in cells}))
@@ -156,6 +161,7 @@ def plot(candidates: Sequence[Candidate], chosen: Candidate, path: str | pathlib
 
 def _parser() -> argparse.ArgumentParser:
     from .cli import add_protocol_arguments
+    from .seed_sets import CHOOSING_SETS
 
     p = argparse.ArgumentParser(
         prog="bimacppo-select",
@@ -176,6 +182,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="YAML overlaying the packaged mpc.yaml (default: the one each checkpoint records)")
     p.add_argument("--table", type=pathlib.Path, default=None,
                    help="also write TABLE.md, TABLE.csv (success per checkpoint and cell) and TABLE.png")
+    p.add_argument("--seed-set", choices=CHOOSING_SETS, default="validation",
+                   help="the validation set that chooses: validation (default) or validation2, the second "
+                        "pair's, for a choice made afresh; the test sets never choose")
     return p
 
 
@@ -217,14 +226,14 @@ def main(argv=None) -> int:
         cands = score_checkpoints(ckpts, n_svs=args.n_sv, tasks=tasks, episodes=args.episodes,
                                   workers=args.workers, action_selection=args.action,
                                   mpc_config=args.mpc_config, map_id=args.map, slow_svs=args.slow_svs,
-                                  progress=progress)
+                                  progress=progress, seed_set=args.seed_set)
     except (CheckpointError, EvaluationError, ConfigError, ValueError) as exc:
         return fail(prog, exc)
     finally:
         bar.close()
     best = choose(cands, args.criterion)
     record = {"checkpoint": best.path.name, "episodes": best.episodes, "criterion": args.criterion,
-              "seed_set": "validation", "episodes_per_cell": args.episodes, "map": args.map,
+              "seed_set": args.seed_set, "episodes_per_cell": args.episodes, "map": args.map,
               "slow_svs": args.slow_svs,
               "n_sv": list(args.n_sv), "tasks": list(args.tasks), "worst_cell": best.worst, "mean": best.mean,
               "candidates": len(cands)}
