@@ -36,7 +36,7 @@ import sys
 from pathlib import Path
 
 from bimacppo_common.config import ConfigError
-from bimacppo_learning.batch import draw_n_slow
+from bimacppo_sim import draw_n_slow
 from bimacppo_learning.evaluate import SEED_SETS, EvaluationError, eval_seed
 from bimacppo_planner.decision import lanes_beside
 from bimacppo_planner.policy import ACTION_SELECTIONS, CheckpointError

@@ -7,7 +7,8 @@ NMPC call, per-slot warm starts, per-slot resets in the middle of the others' ep
 import numpy as np
 import pytest
 
-from bimacppo_learning.batch import IntersectionBatch, draw_n_slow
+from bimacppo_learning.batch import IntersectionBatch
+from bimacppo_sim import draw_n_slow
 from bimacppo_learning.env import IntersectionEnv
 from bimacppo_learning.rollout import make_vector_env, reset_each, reset_one
 from bimacppo_learning.vec_env import BatchedVectorEnv, EnvFactory

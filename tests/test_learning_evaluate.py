@@ -259,7 +259,7 @@ def test_slow_svs_runs_the_overtaking_protocol_the_way_training_draws_it():
     --slow-svs does: the same counts as a hand-written loop that sets n_slow itself."""
 
     from bimacppo_common.conventions import TASKS
-    from bimacppo_learning.batch import draw_n_slow
+    from bimacppo_sim import draw_n_slow
     from bimacppo_learning.env import IntersectionEnv
 
     policy = load_policy(shipped_policy_path())

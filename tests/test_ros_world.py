@@ -107,6 +107,49 @@ def test_world_offers_its_maps_tasks_and_refuses_the_others():
         rclpy.try_shutdown()
 
 
+def test_world_slows_the_svs_evaluation_slows_for_the_same_seed():
+    """scenario.slow_svs (the overtaking protocol) makes each reset slow draw_n_slow(seed, n_sv,
+    slow_svs) SVs, the number training and evaluation draw for that seed, so the node's episode is
+    the in-process world's SV for SV; the reset says how many; a negative value is refused at
+    start-up and at run time, and 0 (the default) slows none."""
+    from std_srvs.srv import Trigger
+
+    from bimacppo_learning.seed_sets import eval_seed
+    from bimacppo_ros_common.params import ConfigError
+    from bimacppo_sim import Scenario, World, draw_n_slow, load_map
+    from bimacppo_sim.ros.world_node import WorldNode
+
+    rclpy.init()
+    try:
+        node = WorldNode(parameter_overrides=[Parameter("map_id", value="three_lane_straight"),
+                                              Parameter("autostart", value=False),
+                                              Parameter("scenario.n_sv", value=3),
+                                              Parameter("scenario.slow_svs", value=2)])
+        ref = World(load_map("three_lane_straight"))
+        drawn = []
+        for k in range(12):
+            seed = eval_seed(1, 3, k, "validation")
+            assert node.set_parameters([Parameter("scenario.seed", value=seed)])[0].successful
+            resp = node._on_reset(Trigger.Request(), Trigger.Response())
+            n_slow = draw_n_slow(seed, 3, 2)
+            assert resp.success and f"n_slow={n_slow}" in resp.message, resp.message
+            ref.reset(Scenario(n_sv=3, task="straight", seed=seed, n_slow=n_slow))
+            assert [(sv.slow, sv.v_des) for sv in node.world.svs] == [(sv.slow, sv.v_des) for sv in ref.svs]
+            assert sum(sv.slow for sv in node.world.svs) == n_slow
+            drawn.append(n_slow)
+        assert set(drawn) == {0, 1, 2}                      # the draw varies with the seed
+        bad = node.set_parameters([Parameter("scenario.slow_svs", value=-1)])[0]
+        assert not bad.successful and node.get_parameter("scenario.slow_svs").value == 2
+        assert node.set_parameters([Parameter("scenario.slow_svs", value=0)])[0].successful
+        node._on_reset(Trigger.Request(), Trigger.Response())
+        assert not any(sv.slow for sv in node.world.svs)
+        node.destroy_node()
+        with pytest.raises(ConfigError, match="scenario.slow_svs"):
+            WorldNode(parameter_overrides=[Parameter("scenario.slow_svs", value=-2)])
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_realtime_world_never_applies_a_command_stamped_in_the_future():
     """Commands with a = +3 stamped far ahead (then none): the world drops them and brakes; it
     must not accelerate the EV until the episode ends."""

@@ -82,6 +82,8 @@ ARGUMENTS: Tuple[Argument, ...] = (
     Argument("seed_base", "scenario seed of the first episode", ((I.CURRICULUM_NODE, "seed_base"),)),
     Argument("map", "road map (a map id or a YAML path) of the world, the planner and the live view",
              ((I.WORLD_NODE, "map_id"), (I.PLANNER_NODE, "map_id"), ("live_view", "map_id"))),
+    Argument("slow_svs", "at most this many slow SVs per episode, drawn from the scenario seed (the "
+             "overtaking protocol: 2 on three_lane_straight)", ((I.WORLD_NODE, "scenario.slow_svs"),)),
     Argument("mode", "world clock: lockstep | realtime", ((I.WORLD_NODE, "mode"),)),
     Argument("rate_factor", "realtime: sim seconds per wall second", ((I.WORLD_NODE, "rate_factor"),)),
     Argument("policy", "planner checkpoint ('': the policy shipped in bimacppo_planner)",

@@ -31,7 +31,7 @@ from gymnasium.utils import seeding
 from bimacppo_common.conventions import TASKS, task_on_map
 from bimacppo_mpc import MPCConfig, make_controller
 from bimacppo_planner.decision import EnvConfig, WaypointTracker, decode_action, idle_share, observe, step_reward
-from bimacppo_sim import Scenario, World, load_map
+from bimacppo_sim import Scenario, World, draw_n_slow, load_map
 from bimacppo_sim.config import DriverConfig
 from bimacppo_sim.drivers import (closing_on_lead, junction_distance, junction_threatened, lanes_to_free_lane,
                                   queued_behind_lead)
@@ -50,16 +50,6 @@ def task_index(task) -> int:
     if not 0 <= j < len(TASKS):
         raise ValueError(f"task index {task!r} out of range 0..{len(TASKS) - 1}")
     return j
-
-
-def slow_rng(seed: int) -> np.random.Generator:
-    """A stream of its own per scenario seed (a SeedSequence child), independent of the world's."""
-    return np.random.default_rng(np.random.SeedSequence(int(seed)).spawn(1)[0])
-
-
-def draw_n_slow(seed: int, n_sv: int, n_slow_max: int) -> int:
-    """How many SVs drive slowly: uniform in 0..min(n_sv, n_slow_max), a function of the seed."""
-    return int(slow_rng(seed).integers(0, min(int(n_sv), n_slow_max) + 1))
 
 
 class IntersectionBatch:

@@ -1,12 +1,14 @@
 """Slow traffic for the overtaking experiment (paper §IV-C).
 
-The rules themselves (the curriculum's task folding onto the road's only task, how many SVs drive
-slowly per scenario seed) live in ``batch.py``, the one implementation of the decision step; this
-module names the overtaking env the fine-tune trains and tests on.
+The rules themselves live elsewhere: the curriculum's task folding onto the road's only task in
+``batch.py``, the one implementation of the decision step, and how many SVs drive slowly per
+scenario seed in ``bimacppo_sim.draw_n_slow`` (the world node draws the same); this module names
+the overtaking env the fine-tune trains and tests on.
 """
 from __future__ import annotations
 
-from ..batch import draw_n_slow, slow_rng  # noqa: F401  (re-exported: the overtaking protocol's draw)
+from bimacppo_sim import draw_n_slow, slow_rng  # noqa: F401  (re-exported: the overtaking protocol's draw)
+
 from ..vec_env import EnvFactory
 
 

@@ -49,9 +49,11 @@ from bimacppo_interfaces import contract as I
 from bimacppo_ros_common.params import ConfigError, declare
 from bimacppo_ros_common.run_clock import NO_FILE, RunClock, default_clock_file
 from bimacppo_ros_common.runtime import guarded, one_line, run_single
-from bimacppo_sim import Scenario, World, load_map
+from bimacppo_sim import Scenario, World, draw_n_slow, load_map
 
 MODES = ("lockstep", "realtime")
+SLOW_SVS_MAX = 16      # the parameter's range; draw_n_slow caps the draw at the episode's N_sv anyway
+SCENARIO_PARAMS = ("scenario.n_sv", "scenario.task", "scenario.seed", "scenario.slow_svs")
 
 
 class WorldNode(Node):
@@ -68,6 +70,9 @@ class WorldNode(Node):
         declare(self, "scenario.task", "straight", "task of the next episode (read at each reset)",
                 choices=TASKS, read_only=False)
         declare(self, "scenario.seed", 0, "scenario seed of the next episode (read at each reset)", read_only=False)
+        declare(self, "scenario.slow_svs", 0, "at most this many SVs drive slowly, their number drawn from the "
+                "scenario seed as in training and evaluation's --slow-svs (the overtaking protocol: 2 on "
+                "three_lane_straight); 0 = none (read at each reset)", lo=0, hi=SLOW_SVS_MAX, read_only=False)
         self.rate_factor = declare(self, "rate_factor", 1.0, "realtime: sim seconds per wall second",
                                    lo=0.01, hi=1000.0)
         self.command_timeout_ns = int(declare(self, "command_timeout_s", 0.3, "realtime: a command older than "
@@ -142,11 +147,10 @@ class WorldNode(Node):
 
     # ------------------------------------------------------------------ parameters
     def _scenario_params(self):
-        g = lambda n: self.get_parameter(n).value  # noqa: E731
-        return g("scenario.n_sv"), g("scenario.task"), g("scenario.seed")
+        return tuple(self.get_parameter(n).value for n in SCENARIO_PARAMS)
 
     def _check_scenario(self, params) -> Scenario:
-        n_sv, task, seed = params
+        n_sv, task, seed, slow_svs = params
         if task not in TASKS:
             raise ValueError(f"world: scenario.task must be one of {TASKS}, got {task!r}")
         if task not in self.tasks:
@@ -154,14 +158,16 @@ class WorldNode(Node):
                              f"(map_tasks: {', '.join(self.tasks)})")
         if not isinstance(n_sv, int) or not 0 <= n_sv <= self.world.max_sv:
             raise ValueError(f"world: scenario.n_sv must be an integer in 0..{self.world.max_sv}, got {n_sv!r}")
-        return Scenario(n_sv=n_sv, task=task, seed=seed)
+        if not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"world: scenario.seed must be an integer >= 0, got {seed!r}")
+        return Scenario(n_sv=n_sv, task=task, seed=seed, n_slow=draw_n_slow(seed, n_sv, slow_svs))
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         """Run-time changes are applied or refused with a reason, never accepted and ignored:
         the scenario.* parameters are read at each reset (how the curriculum picks episodes) and
         checked here; every other parameter is read-only (read once at start-up), which rclpy
         refuses before this callback."""
-        cur = dict(zip(("scenario.n_sv", "scenario.task", "scenario.seed"), self._scenario_params()))
+        cur = dict(zip(SCENARIO_PARAMS, self._scenario_params()))
         cur.update({prm.name: prm.value for prm in params if prm.name in cur})
         try:
             self._check_scenario(tuple(cur.values()))
@@ -196,7 +202,7 @@ class WorldNode(Node):
             resp.success, resp.message = False, str(exc)
             return resp
         resp.success = True
-        resp.message = f"n_sv={sc.n_sv} task={sc.task} seed={sc.seed} stamp_ns={self.stamp_ns()}"
+        resp.message = f"n_sv={sc.n_sv} task={sc.task} seed={sc.seed} n_slow={sc.n_slow} stamp_ns={self.stamp_ns()}"
         return resp
 
     def _publish_state(self) -> None:
@@ -238,7 +244,8 @@ class WorldNode(Node):
                           for k, v in extra.items()]
             self.pub_result.publish(st)
             self.get_logger().info(f"episode {self.episodes}: {res.outcome} after {res.steps} steps "
-                                   f"(n_sv={sc.n_sv}, task={sc.task}, seed={sc.seed})")
+                                   f"(n_sv={sc.n_sv}, task={sc.task}, seed={sc.seed}"
+                                   + (f", n_slow={sc.n_slow})" if sc.n_slow else ")"))
 
     # ------------------------------------------------------------------ commands
     def _on_command(self, msg) -> None:
