@@ -154,16 +154,48 @@ OBSERVER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliabili
                           durability=DurabilityPolicy.VOLATILE)
 
 
-@pytest.mark.parametrize("which", ["paper", "extended"])
-def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_extended, which):
-    policy_file = policy_file if which == "paper" else policy_file_extended
-    ref_outcome, ref_traj, ref_return, ref_changes = in_process_episode(SCENARIO, policy_file)
+@pytest.fixture(scope="module")
+def policy_file_overtaking(tmp_path_factory):
+    """A policy with the shipped overtaking policy's configuration (the three-lane road's lead
+    features, lane changes from the chosen lane): the planner node must observe and decode as
+    its env did, on a world whose slow SVs are drawn from the seed."""
+    from bimacppo_learning.checkpoint import export_policy
+    from bimacppo_learning.ppo import PPO
+    from bimacppo_planner.decision import EnvConfig
+    from conftest import REPO
+    cfg = EnvConfig.load(REPO / "studies/config/env_wait_chord_junction_road_overtake_chosen_queue_leads.yaml")
+    assert cfg.observation.leads and cfg.action.lane_change_from == "chosen"
+    path = tmp_path_factory.mktemp("policy_ot") / "policy.pt"
+    export_policy(PPO(cfg.obs_dim, cfg.nvec, seed=POLICY_SEED), path,
+                  meta={"env_config": cfg.to_dict(), "map": "three_lane_straight"})
+    return path
+
+
+def _overtaking_scenario():
+    """The first validation scenario of the overtaking protocol (3 SVs, at most 2 slow) in which
+    two SVs drive slowly."""
+    from bimacppo_learning.seed_sets import eval_seed
+    from bimacppo_sim import draw_n_slow
+    seed = next(s for s in (eval_seed(1, 3, k, "validation") for k in range(1000)) if draw_n_slow(s, 3, 2) == 2)
+    return Scenario(n_sv=3, task="straight", seed=seed, n_slow=2)
+
+
+@pytest.mark.parametrize("which", ["paper", "extended", "overtaking"])
+def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_extended, policy_file_overtaking,
+                                                 which):
+    policy_file = {"paper": policy_file, "extended": policy_file_extended, "overtaking": policy_file_overtaking}[which]
+    scenario = _overtaking_scenario() if which == "overtaking" else SCENARIO
+    map_id = "three_lane_straight" if which == "overtaking" else "dual_lane_4way"
+    ref_outcome, ref_traj, ref_return, ref_changes = in_process_episode(scenario, policy_file, map_id)
     if which == "paper":
         assert ref_changes > 0, "POLICY_SEED should give a policy that changes lanes on SCENARIO"
-    odoms, results, returns = {}, [], []
+    odoms, objects, results, returns = {}, {}, [], []
     subs = [
         node.create_subscription(I.Odometry, I.TOPIC_EGO_ODOM,
                                  lambda m: odoms.setdefault(I.stamp_to_ns(m.header.stamp), I.odometry_to_state(m)),
+                                 OBSERVER_QOS),
+        node.create_subscription(I.MultiDOFJointTrajectory, I.TOPIC_OBJECTS,
+                                 lambda m: objects.setdefault(I.stamp_to_ns(m.header.stamp), I.objects_to_svs(m)[1]),
                                  OBSERVER_QOS),
         node.create_subscription(I.DiagnosticStatus, I.TOPIC_RESULT,
                                  lambda m: results.append(I.status_to_result(m)), I.RESULT_QOS),
@@ -173,13 +205,14 @@ def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_
     # Both results are volatile, so this observer is matched with each of their publishers
     # before the episode can end: planner, world, and only then the controller (the world
     # cannot step before the controller answers, so no result exists before the last start).
-    procs = [_planner(policy_file)]
+    procs = [_planner(policy_file, "-p", f"map_id:={map_id}")]
     try:
-        _await_publisher(node, subs[2])
+        _await_publisher(node, subs[3])
         procs.append(_start("-m", "bimacppo_sim.ros.world_node", "--ros-args", "-p", "mode:=lockstep",
-                            "-p", f"scenario.n_sv:={SCENARIO.n_sv}", "-p", f"scenario.task:={SCENARIO.task}",
-                            "-p", f"scenario.seed:={SCENARIO.seed}"))
-        _await_publisher(node, subs[1]), _await_publisher(node, subs[0])
+                            "-p", f"map_id:={map_id}", "-p", f"scenario.n_sv:={scenario.n_sv}",
+                            "-p", f"scenario.task:={scenario.task}", "-p", f"scenario.seed:={scenario.seed}",
+                            "-p", f"scenario.slow_svs:={2 if which == 'overtaking' else 0}"))
+        _await_publisher(node, subs[2]), _await_publisher(node, subs[1]), _await_publisher(node, subs[0])
         procs.append(_start("-m", "bimacppo_mpc.ros.controller_node"))
         ok = _collect(node, lambda: bool(results) and bool(returns), EPISODE_TIMEOUT)
     finally:
@@ -201,6 +234,18 @@ def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_
     # is the return the environment's reward gives the same episode
     assert returns[0].outcome == res.outcome and returns[0].stamp_ns == res.stamp_ns
     assert returns[0].episode_return == pytest.approx(ref_return, abs=1e-9)
+    # the SVs of the episode's first tick are the in-process world's (the slow ones included:
+    # an SV starts at a share of its desired speed, which slowing scales)
+    first = [t for t in stamps if t <= res.stamp_ns][-len(ref_traj)]
+    ref_world = World(load_map(map_id))
+    ref_world.reset(scenario)
+    svs0 = ref_world.sv_states()
+    assert objects[first].shape == svs0.shape and np.allclose(objects[first][:, :3], svs0[:, :3], atol=1e-6)
+    if which == "overtaking":
+        v_normal = World(load_map(map_id))
+        v_normal.reset(Scenario(n_sv=3, task="straight", seed=scenario.seed, n_slow=0))
+        slowed = svs0[:, 2] < v_normal.sv_states()[:, 2] - 1e-6
+        assert slowed.sum() == 2
 
 
 @pytest.fixture(scope="module")
