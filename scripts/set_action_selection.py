@@ -13,7 +13,7 @@ import argparse
 import sys
 from collections.abc import Mapping
 
-from bimacppo_learning.checkpoint import (check_checkpoint, fine_tune_source_record, run_meta_of,
+from bimacppo_learning.checkpoint import (check_checkpoint, checkpoint_meta, fine_tune_source_record,
                                           set_action_selection)
 from bimacppo_planner.policy import (CHECKPOINT_FORMAT, DEPLOYED_SELECTIONS, CheckpointError, Policy,
                                      read_policy_payload, read_torch_file)
@@ -27,12 +27,7 @@ def _source_record(src: str, source: str) -> dict:
         raise CheckpointError(src, "records the file it was fine-tuned from already")
     s = read_torch_file(source)
     if isinstance(s, Mapping) and s.get("format") == CHECKPOINT_FORMAT:
-        s = check_checkpoint(s, source)
-        meta = run_meta_of(s, source)
-        try:
-            meta.setdefault("episodes", int(s["counters"]["episodes"]))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise CheckpointError(source, f"malformed counters ({type(exc).__name__}: {exc})") from None
+        meta = checkpoint_meta(check_checkpoint(s, source), source)
     else:
         meta = dict(Policy(s, source).meta)
     return fine_tune_source_record(source, meta)

@@ -113,6 +113,18 @@ def run_meta_of(d: Mapping[str, Any], path: str | os.PathLike) -> dict:
     return dict(meta)
 
 
+def checkpoint_meta(d: Mapping[str, Any], path: str | os.PathLike) -> dict:
+    """A checkpoint's run metadata with its ``episodes`` (from its counters; left out when they
+    are unreadable), the fields a policy export's metadata carries: what a fine-tune records of
+    its source."""
+    meta = run_meta_of(d, path)
+    try:
+        meta.setdefault("episodes", int(d["counters"]["episodes"]))
+    except (KeyError, TypeError, ValueError):
+        pass
+    return meta
+
+
 def mpc_config_of(meta: Mapping[str, Any], path: str | os.PathLike):
     """The NMPC config a run was trained with (its run metadata's ``mpc_config``, read as a record:
     a key added since takes the value that reproduces the controller before it, see

@@ -269,9 +269,10 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
         path = latest
         if args.resume and latest is not None:
             d = load_checkpoint(latest)
-            source = run_meta_of(d, latest).get("fine_tuned_from")
-            why = check_checkpoint_fits(latest, d["agent"]["obs_dim"], d["agent"]["nvec"],
-                                        run_meta_of(d, latest), env_cfg, mpc_cfg)
+            saved_meta = run_meta_of(d, latest)
+            source = saved_meta.get("fine_tuned_from")
+            why = check_checkpoint_fits(latest, d["agent"]["obs_dim"], d["agent"]["nvec"], saved_meta, env_cfg,
+                                        mpc_cfg)
             if why:
                 return why, None, pcfg, None
             try:
@@ -282,7 +283,7 @@ def _preflight(args, env_cfg: EnvConfig, pcfg, run_dir: Path, mpc_cfg, world_cfg
             if diff:
                 return (f"{latest}: was trained with another PPO config ({'; '.join(diff)}; checkpoint != "
                         "this run): resume with the same ppo section"), None, pcfg, None
-            why = _world_differs(latest, run_meta_of(d, latest), world_cfg)
+            why = _world_differs(latest, saved_meta, world_cfg)
             if why:
                 return why, None, pcfg, None
     except CheckpointError as exc:

@@ -399,7 +399,7 @@ def load_fine_tune_source(path: str | os.PathLike, seed: int = 0) -> tuple[PPO, 
 
     from bimacppo_planner.policy import ENSEMBLE_FORMAT, POLICY_FORMAT, Policy, read_torch_file
 
-    from .checkpoint import check_checkpoint, run_meta_of
+    from .checkpoint import check_checkpoint, checkpoint_meta
     from .ppo import check_state_shapes
 
     d = read_torch_file(path)
@@ -414,12 +414,7 @@ def load_fine_tune_source(path: str | os.PathLike, seed: int = 0) -> tuple[PPO, 
         except (ValueError, TypeError, KeyError) as exc:
             raise CheckpointError(path, f"cannot rebuild the agent: {exc}") from None
         restore_agent(agent, d["agent"], path)
-        meta = run_meta_of(d, path)
-        try:
-            meta.setdefault("episodes", int(d["counters"]["episodes"]))
-        except (KeyError, TypeError, ValueError):
-            pass
-        return agent, meta, False
+        return agent, checkpoint_meta(d, path), False
     pol = Policy(d, path)          # refuses a malformed or non-finite export, naming path
     try:
         pcfg = dataclasses.replace(load_config()[0], hidden_sizes=pol.hidden_sizes,

@@ -54,16 +54,13 @@ class Scenario:
             raise ValueError(f"Scenario.n_slow = {self.n_slow} exceeds n_sv = {self.n_sv}")
 
 
-def slow_rng(seed: int) -> np.random.Generator:
-    """A stream of its own per scenario seed (a SeedSequence child), independent of the world's."""
-    return np.random.default_rng(np.random.SeedSequence(int(seed)).spawn(1)[0])
-
-
 def draw_n_slow(seed: int, n_sv: int, n_slow_max: int) -> int:
     """How many SVs drive slowly in the scenario of ``seed`` with at most ``n_slow_max`` slow
     (the overtaking protocol, paper §IV-C): uniform in 0..min(n_sv, n_slow_max), a function of
-    the seed alone, so training, evaluation and the world node meet the same scenario for a seed."""
-    return int(slow_rng(seed).integers(0, min(int(n_sv), int(n_slow_max)) + 1))
+    the seed alone (drawn from a SeedSequence child of it, a stream independent of the world's),
+    so training, evaluation and the world node meet the same scenario for a seed."""
+    rng = np.random.default_rng(np.random.SeedSequence(int(seed)).spawn(1)[0])
+    return int(rng.integers(0, min(int(n_sv), int(n_slow_max)) + 1))
 
 
 @dataclass

@@ -7,7 +7,7 @@ the overtaking env the fine-tune trains and tests on.
 """
 from __future__ import annotations
 
-from bimacppo_sim import draw_n_slow, slow_rng  # noqa: F401  (re-exported: the overtaking protocol's draw)
+from bimacppo_sim import draw_n_slow  # noqa: F401  (re-exported: the overtaking protocol's draw)
 
 from ..vec_env import EnvFactory
 

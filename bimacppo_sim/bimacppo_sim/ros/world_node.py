@@ -34,6 +34,7 @@ readable, valid map file) and a problem is one ``error:`` line with exit code 2.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Optional
 
@@ -158,9 +159,8 @@ class WorldNode(Node):
                              f"(map_tasks: {', '.join(self.tasks)})")
         if not isinstance(n_sv, int) or not 0 <= n_sv <= self.world.max_sv:
             raise ValueError(f"world: scenario.n_sv must be an integer in 0..{self.world.max_sv}, got {n_sv!r}")
-        if not isinstance(seed, int) or seed < 0:
-            raise ValueError(f"world: scenario.seed must be an integer >= 0, got {seed!r}")
-        return Scenario(n_sv=n_sv, task=task, seed=seed, n_slow=draw_n_slow(seed, n_sv, slow_svs))
+        sc = Scenario(n_sv=n_sv, task=task, seed=seed)     # checks the seed before it is drawn from
+        return dataclasses.replace(sc, n_slow=draw_n_slow(seed, n_sv, slow_svs))
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         """Run-time changes are applied or refused with a reason, never accepted and ignored:
