@@ -95,8 +95,9 @@ def test_gradient_and_exact_hessian_match_finite_differences():
     lam = np.zeros((N + 1, 4))
     g = np.empty(n)
     H = np.empty((n, n))
+    J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H)
     Hgn = np.empty((n, n))
-    J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H, Hgn)
+    K.hessian(z, X, S, lam, P, False, Hgn)
     assert J == pytest.approx(_cost(x0, z, xref, up), rel=1e-14)
     eps = 1e-6
     g_fd = np.array([(_cost(x0, z + eps * e, xref, up) - _cost(x0, z - eps * e, xref, up)) / (2 * eps)
@@ -105,8 +106,8 @@ def test_gradient_and_exact_hessian_match_finite_differences():
     H_fd = np.empty((n, n))
     for j, e in enumerate(np.eye(n)):
         gp, gm = np.empty(n), np.empty(n)
-        K.derivatives(x0, z + eps * e, xref, up, P, False, X, S, lam, gp, np.empty((n, n)), Hgn)
-        K.derivatives(x0, z - eps * e, xref, up, P, False, X, S, lam, gm, np.empty((n, n)), Hgn)
+        K.derivatives(x0, z + eps * e, xref, up, P, False, X, S, lam, gp, np.empty((n, n)))
+        K.derivatives(x0, z - eps * e, xref, up, P, False, X, S, lam, gm, np.empty((n, n)))
         H_fd[:, j] = (gp - gm) / (2 * eps)
     scale = np.abs(H).max()
     assert np.abs(H - H_fd).max() < 1e-5 * scale
@@ -122,7 +123,7 @@ def _hessian_term_by_term(x0, z, xref, up, exact):
     X = np.empty((N + 1, 4))
     S = np.zeros((N + 1, 4, n))
     lam = np.zeros((N + 1, 4))
-    K.derivatives(x0, z, xref, up, P, exact, X, S, lam, np.empty(n), np.empty((n, n)), np.empty((n, n)))
+    K.derivatives(x0, z, xref, up, P, exact, X, S, lam, np.empty(n), np.empty((n, n)))
     L, dt = P[K.P_L], P[K.P_DT]
     Q = np.diag(2.0 * P[K.P_QX:K.P_QX + 4])
     H = sum(S[k].T @ Q @ S[k] for k in range(1, N + 1))
@@ -158,14 +159,15 @@ def test_hessian_recursion_equals_the_stage_sum():
         z = np.c_[rng.uniform(-6, 3, N), rng.uniform(-0.6, 0.6, N)].ravel()
         X, S, lam = np.empty((N + 1, 4)), np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4))
         g, H, Hgn = np.empty(n), np.full((n, n), np.nan), np.full((n, n), np.nan)
-        K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H, Hgn)
+        K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H)
+        K.hessian(z, X, S, lam, P, False, Hgn)      # the Gauss-Newton part at the same z
         H_ref = _hessian_term_by_term(x0, z, xref, up, True)
         Hgn_ref = _hessian_term_by_term(x0, z, xref, up, False)
         scale = np.abs(H_ref).max()
         assert np.abs(H - H_ref).max() < 1e-12 * scale
         assert np.abs(Hgn - Hgn_ref).max() < 1e-12 * scale
         H2 = np.full((n, n), np.nan)
-        K.derivatives(x0, z, xref, up, P, False, X, S, lam, g, H2, np.empty((n, n)))
+        K.derivatives(x0, z, xref, up, P, False, X, S, lam, g, H2)
         assert np.abs(H2 - Hgn_ref).max() < 1e-12 * scale
         g2 = np.empty(n)
         K.rollout(x0, z, P, X)
@@ -175,7 +177,7 @@ def test_hessian_recursion_equals_the_stage_sum():
 
 def _qp_at(x0, xref, up, z, vlo, vhi, zlo, zhi, wk):
     """One SQP iteration's QP at z: (J, pred, code, nW) with wk holding its factors."""
-    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn, starts) = wk
+    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, starts) = wk
     n = z.size
     X = np.empty((N + 1, 4))
     K.slacks(z, h, P[K.P_DT], b)
@@ -184,10 +186,10 @@ def _qp_at(x0, xref, up, z, vlo, vhi, zlo, zhi, wk):
         if b[c] <= 1e-12 and nW < n:
             W[nW] = c
             nW += 1
-    J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H, Hgn)
+    J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H)
     dmax = np.abs(np.diag(H)).max()
     if not K.cholesky(H, Lh, n, 1e-6 * dmax):
-        assert K.convexify(H, Lh, G, b, H0, dmax, Hgn, np.empty_like(H))
+        assert K.convexify(H, Lh, G, b, H0, dmax, np.empty_like(H))
     code, nW = K.qp_active_set(H, Lh, g, G, b, W, nW, 200, p, lamW, inW, Y, Ls, Sm, ws, starts)
     return J, -(g @ p + 0.5 * p @ H @ p), code, nW
 
@@ -226,7 +228,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
         if prev is None or pred_end > 1e-3 * tol * (1 + J_end):
             continue                                # not well inside the tolerance: the estimate may differ
         z_prev, p_prev = prev
-        (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn, starts) = wk
+        (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, starts) = wk
         # the factors of the QP at z_prev, then the estimate at z (= z_prev + its full step)
         J_prev, pred_prev, code, nW = _qp_at(x0, xr, up, z_prev, vlo, vhi, zlo, zhi, wk)
         if code != 0:

@@ -29,10 +29,9 @@ def test_the_shift_search_returns_the_factor_of_the_shifted_matrix(seed):
     H0 = np.empty_like(H)
     Lh = np.full_like(H, np.nan)
     spare = np.full_like(H, np.nan)    # scratch: never read before it is written
-    Hgn = np.eye(n)
     dmax = np.abs(np.diag(H)).max()
     assert not K.cholesky(H.copy(), np.empty_like(H), n, K._MIN_PIVOT * dmax)
-    assert K.convexify(H, Lh, G, b, H0, dmax, Hgn, spare)
+    assert K.convexify(H, Lh, G, b, H0, dmax, spare)
     shift = H - orig
     tau = shift[0, 0]
     off = ~np.eye(n, dtype=bool)
@@ -44,3 +43,15 @@ def test_the_shift_search_returns_the_factor_of_the_shifted_matrix(seed):
     assert K.cholesky(H.copy(), ref, n, K._MIN_PIVOT * dmax)
     assert np.array_equal(Lh, ref), "the factor in Lh is the factor of the returned H, bit for bit"
     assert np.allclose(Lh @ Lh.T, H, atol=1e-9 * dmax)
+
+
+def test_a_shift_beyond_the_largest_diagonal_is_left_to_the_caller():
+    """A Hessian whose negative curvature exceeds max |H_ii| cannot be shifted within the search
+    (the shifts stop at max |H_ii|): convexify reports failure, and sqp_ws falls back to the
+    Gauss-Newton Hessian, which it forms only then."""
+    H = np.array([[1.0, 10.0], [10.0, 1.0]])        # eigenvalues -9 and 11, max |H_ii| = 1
+    n = 2
+    G = np.eye(n)
+    b = np.ones(n)
+    dmax = 1.0
+    assert not K.convexify(H, np.empty_like(H), G, b, np.empty_like(H), dmax, np.empty_like(H))

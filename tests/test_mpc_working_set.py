@@ -22,9 +22,10 @@ NEAR_PARALLEL = np.array([[0.6672432157058636, 0.4607751075579932],
 
 
 def _fill(G, n, slots):
-    """Offer every row of G to an empty working set whose arrays have `slots` >= n columns."""
+    """Offer every row of G to an empty working set whose arrays have `slots` >= n rows (Y holds
+    one solved row per working-set row)."""
     Lh = np.eye(n)
-    Y = np.zeros((n, slots))
+    Y = np.zeros((slots, n))
     Ls = np.zeros((slots, slots))
     y = np.zeros(n)
     tmp = np.zeros(slots)
@@ -40,7 +41,7 @@ def test_a_full_working_set_takes_no_further_row():
     # arrays one slot larger than n, so a wrong append shows as size 3 instead of corrupting memory
     sizes, Y, Ls = _fill(NEAR_PARALLEL, 2, 3)
     assert sizes == [1, 2, 2]
-    assert np.all(Y[:, 2] == 0.0) and np.all(Ls[2] == 0.0)
+    assert np.all(Y[2] == 0.0) and np.all(Ls[2] == 0.0)
 
 
 def test_independent_rows_still_fill_the_working_set():
@@ -48,8 +49,8 @@ def test_independent_rows_still_fill_the_working_set():
     G = rng.standard_normal((5, 4))
     sizes, Y, Ls = _fill(G, 4, 4)
     assert sizes == [1, 2, 3, 4, 4]
-    # Ls is the Cholesky factor of Y'Y (the working set's Schur complement)
-    assert np.allclose(Ls @ Ls.T, Y.T @ Y)
+    # Ls is the Cholesky factor of Y Y' (the working set's Schur complement)
+    assert np.allclose(Ls @ Ls.T, Y @ Y.T)
 
 
 # Cold problems (found by probing the kernel) whose SQP has a QP step blocked by a row while the
@@ -175,24 +176,24 @@ def test_the_one_pass_rebuild_is_the_row_by_row_appends():
                             np.zeros((n, n)), np.zeros(n, dtype=np.int64))
         assert nW2 == nW1 and list(W2[:nW2]) == W1
         assert sorted(np.flatnonzero(inW)) == sorted(W1)
-        assert np.array_equal(Y2[:, :nW2], Y1[:, :nW1]) and np.array_equal(Ls2[:nW2, :nW2], Ls1[:nW1, :nW1])
+        assert np.array_equal(Y2[:nW2], Y1[:nW1]) and np.array_equal(Ls2[:nW2, :nW2], Ls1[:nW1, :nW1])
         dropped += nc - nW1
     assert dropped > 0
 
 
 def test_deleting_a_row_keeps_the_factor_of_the_rest():
-    """Dropping working-set row a leaves Ls the Cholesky factor of Y'Y without row and column
+    """Dropping working-set row a leaves Ls the Cholesky factor of Y Y' without row and column
     a: lower triangular with a positive diagonal, zero outside the remaining rows."""
     rng = np.random.default_rng(5)
     n = 12
     for nW in (1, 2, 5, 9):
         for a in range(nW):
-            Y = rng.standard_normal((n, nW))
+            Y = rng.standard_normal((nW, n))
             Ls = np.zeros((n, n))
-            Ls[:nW, :nW] = np.linalg.cholesky(Y.T @ Y)
+            Ls[:nW, :nW] = np.linalg.cholesky(Y @ Y.T)
             K._ws_delete(Ls, nW, a)
-            rest = np.delete(Y, a, axis=1)
+            rest = np.delete(Y, a, axis=0)
             m = nW - 1
-            assert np.allclose(Ls[:m, :m], np.linalg.cholesky(rest.T @ rest) if m else np.zeros((0, 0)))
+            assert np.allclose(Ls[:m, :m], np.linalg.cholesky(rest @ rest.T) if m else np.zeros((0, 0)))
             assert np.all(np.diag(Ls)[:m] > 0.0)
             assert np.all(np.triu(Ls, 1) == 0.0) and np.all(Ls[m:] == 0.0) and np.all(Ls[:, m:] == 0.0)

@@ -318,10 +318,10 @@ def gradient(x0, z, xref, uprev, P, X, lam, g):
 
 
 @njit(cache=True)
-def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn):
-    """Cost, gradient and (exact or Gauss-Newton) Hessian of the single-shooting cost.
-
-    Hgn receives the Gauss-Newton part (always positive definite) when exact is set.
+def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
+    """Cost, gradient and (exact or Gauss-Newton) Hessian of the single-shooting cost; X, S and
+    lam keep the rollout, the forward sensitivities and the costates at z, which
+    ``hessian(..., False, ...)`` reuses for the Gauss-Newton Hessian where it is needed.
 
     The Hessian is sum_k V_k' C_k V_k with V_k = d(x_k, u_k)/dz and C_k the Hessian of stage
     k's Lagrangian (tracking weights plus the costate-weighted curvature of the Euler step;
@@ -368,117 +368,125 @@ def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn):
         S[k + 1, 3, 2 * k + 1] = dt * 2.0 * v / L * math.cos(d)
     # gradient and costates lam[k] = d(cost of x_k..x_N)/dx_k
     gradient(x0, z, xref, uprev, P, X, lam, g)
+    hessian(z, X, S, lam, P, exact, H)
+    return J
+
+
+@njit(cache=True)
+def hessian(z, X, S, lam, P, curv, Hm):
+    """The single-shooting cost's Hessian at z into Hm: exact (curv: the tracking weights plus
+    the costate-weighted curvature of the Euler step) or its Gauss-Newton part (the weights
+    alone, always positive definite), from the rollout X, sensitivities S and costates lam
+    that ``derivatives`` left at z (see its docstring for the recursion)."""
+    N = z.size // 2
+    n = 2 * N
+    L = P[P_L]
+    dt = P[P_DT]
     Pn = np.empty((4, 4))
     A = np.empty((4, 4))
     B = np.empty((4, 2))
     PA = np.empty((4, 4))
     PB = np.empty((4, 2))
     Kx = np.empty((4, 2))
-    passes = 2 if exact else 1
-    for ps in range(passes):
-        # pass 0: the Hessian asked for (exact or Gauss-Newton) into H; pass 1: Gauss-Newton into Hgn
-        curv = exact and ps == 0
-        Hm = H if ps == 0 else Hgn
-        Pn[:, :] = 0.0
-        for i in range(4):
-            Pn[i, i] = 2.0 * P[P_QX + i]
-        for k in range(N - 1, -1, -1):
-            v = X[k, 2]
-            psi = X[k, 3]
-            d = z[2 * k + 1]
-            c = math.cos(psi + d)
-            s = math.sin(psi + d)
-            for r in range(4):
-                for q in range(4):
-                    A[r, q] = 1.0 if r == q else 0.0
-            A[0, 2] = dt * c
-            A[0, 3] = -dt * v * s
-            A[1, 2] = dt * s
-            A[1, 3] = dt * v * c
-            A[3, 2] = dt * 2.0 / L * math.sin(d)
-            B[0, 0] = 0.0
-            B[1, 0] = 0.0
-            B[2, 0] = dt
-            B[3, 0] = 0.0
-            B[0, 1] = -dt * v * s
-            B[1, 1] = dt * v * c
-            B[2, 1] = 0.0
-            B[3, 1] = dt * 2.0 * v / L * math.cos(d)
-            # costate-weighted second derivatives of the Euler step in (v_k, psi_k, delta_k)
-            m_vp = 0.0
-            m_vd = 0.0
-            m_pp = 0.0
-            m_dd = 0.0
-            if curv:
-                lx = lam[k + 1, 0]
-                ly = lam[k + 1, 1]
-                lp = lam[k + 1, 3]
-                m_vp = dt * (-lx * s + ly * c)
-                m_pp = dt * (-lx * v * c - ly * v * s)
-                m_vd = m_vp + lp * dt * 2.0 / L * math.cos(d)
-                m_dd = m_pp - lp * dt * 2.0 * v / L * math.sin(d)
-            # PA = P_{k+1} A, PB = P_{k+1} B
-            for r in range(4):
-                for q in range(4):
-                    t = 0.0
-                    for i in range(4):
-                        t += Pn[r, i] * A[i, q]
-                    PA[r, q] = t
-                for q in range(2):
-                    t = 0.0
-                    for i in range(4):
-                        t += Pn[r, i] * B[i, q]
-                    PB[r, q] = t
-            # u_k's own block: C^uu + B' P B
-            for q1 in range(2):
-                for q2 in range(q1 + 1):
-                    t = 0.0
-                    for i in range(4):
-                        t += B[i, q1] * PB[i, q2]
-                    Hm[2 * k + q1, 2 * k + q2] = t
-            Hm[2 * k + 1, 2 * k + 1] += m_dd
-            # Kx <- C^xu + A' P B
-            for r in range(4):
-                for q in range(2):
-                    t = 0.0
-                    for i in range(4):
-                        t += A[i, r] * PB[i, q]
-                    Kx[r, q] = t
-            Kx[2, 1] += m_vd
-            Kx[3, 1] += m_pp
-            # the blocks of u_j, j < k: (dx_k/du_j)' Kx
-            for q in range(2):
-                row = 2 * k + q
-                for j in range(2 * k):
-                    Hm[row, j] = (S[k, 0, j] * Kx[0, q] + S[k, 1, j] * Kx[1, q] + S[k, 2, j] * Kx[2, q]
-                                  + S[k, 3, j] * Kx[3, q])
-            # P_k = C^xx + A' P A (not needed at k = 0: x_0 is fixed)
-            if k > 0:
-                for r in range(4):
-                    for q in range(r + 1):
-                        t = 0.0
-                        for i in range(4):
-                            t += A[i, r] * PA[i, q]
-                        Pn[r, q] = t
-                        Pn[q, r] = t
+    Pn[:, :] = 0.0
+    for i in range(4):
+        Pn[i, i] = 2.0 * P[P_QX + i]
+    for k in range(N - 1, -1, -1):
+        v = X[k, 2]
+        psi = X[k, 3]
+        d = z[2 * k + 1]
+        c = math.cos(psi + d)
+        s = math.sin(psi + d)
+        for r in range(4):
+            for q in range(4):
+                A[r, q] = 1.0 if r == q else 0.0
+        A[0, 2] = dt * c
+        A[0, 3] = -dt * v * s
+        A[1, 2] = dt * s
+        A[1, 3] = dt * v * c
+        A[3, 2] = dt * 2.0 / L * math.sin(d)
+        B[0, 0] = 0.0
+        B[1, 0] = 0.0
+        B[2, 0] = dt
+        B[3, 0] = 0.0
+        B[0, 1] = -dt * v * s
+        B[1, 1] = dt * v * c
+        B[2, 1] = 0.0
+        B[3, 1] = dt * 2.0 * v / L * math.cos(d)
+        # costate-weighted second derivatives of the Euler step in (v_k, psi_k, delta_k)
+        m_vp = 0.0
+        m_vd = 0.0
+        m_pp = 0.0
+        m_dd = 0.0
+        if curv:
+            lx = lam[k + 1, 0]
+            ly = lam[k + 1, 1]
+            lp = lam[k + 1, 3]
+            m_vp = dt * (-lx * s + ly * c)
+            m_pp = dt * (-lx * v * c - ly * v * s)
+            m_vd = m_vp + lp * dt * 2.0 / L * math.cos(d)
+            m_dd = m_pp - lp * dt * 2.0 * v / L * math.sin(d)
+        # PA = P_{k+1} A, PB = P_{k+1} B
+        for r in range(4):
+            for q in range(4):
+                t = 0.0
                 for i in range(4):
-                    Pn[i, i] += 2.0 * P[P_QX + i]
-                Pn[2, 3] += m_vp
-                Pn[3, 2] += m_vp
-                Pn[3, 3] += m_pp
-        # input terms
-        for k in range(N):
-            for i in range(2):
-                j = 2 * k + i
-                qd = P[P_QDU + i]
-                Hm[j, j] += 2.0 * P[P_QU + i] + 2.0 * qd
-                if k + 1 < N:
-                    Hm[j, j] += 2.0 * qd
-                    Hm[j + 2, j] -= 2.0 * qd
-        for j in range(n):
-            for l in range(j):
-                Hm[l, j] = Hm[j, l]
-    return J
+                    t += Pn[r, i] * A[i, q]
+                PA[r, q] = t
+            for q in range(2):
+                t = 0.0
+                for i in range(4):
+                    t += Pn[r, i] * B[i, q]
+                PB[r, q] = t
+        # u_k's own block: C^uu + B' P B
+        for q1 in range(2):
+            for q2 in range(q1 + 1):
+                t = 0.0
+                for i in range(4):
+                    t += B[i, q1] * PB[i, q2]
+                Hm[2 * k + q1, 2 * k + q2] = t
+        Hm[2 * k + 1, 2 * k + 1] += m_dd
+        # Kx <- C^xu + A' P B
+        for r in range(4):
+            for q in range(2):
+                t = 0.0
+                for i in range(4):
+                    t += A[i, r] * PB[i, q]
+                Kx[r, q] = t
+        Kx[2, 1] += m_vd
+        Kx[3, 1] += m_pp
+        # the blocks of u_j, j < k: (dx_k/du_j)' Kx
+        for q in range(2):
+            row = 2 * k + q
+            for j in range(2 * k):
+                Hm[row, j] = (S[k, 0, j] * Kx[0, q] + S[k, 1, j] * Kx[1, q] + S[k, 2, j] * Kx[2, q]
+                              + S[k, 3, j] * Kx[3, q])
+        # P_k = C^xx + A' P A (not needed at k = 0: x_0 is fixed)
+        if k > 0:
+            for r in range(4):
+                for q in range(r + 1):
+                    t = 0.0
+                    for i in range(4):
+                        t += A[i, r] * PA[i, q]
+                    Pn[r, q] = t
+                    Pn[q, r] = t
+            for i in range(4):
+                Pn[i, i] += 2.0 * P[P_QX + i]
+            Pn[2, 3] += m_vp
+            Pn[3, 2] += m_vp
+            Pn[3, 3] += m_pp
+    # input terms
+    for k in range(N):
+        for i in range(2):
+            j = 2 * k + i
+            qd = P[P_QDU + i]
+            Hm[j, j] += 2.0 * P[P_QU + i] + 2.0 * qd
+            if k + 1 < N:
+                Hm[j, j] += 2.0 * qd
+                Hm[j + 2, j] -= 2.0 * qd
+    for j in range(n):
+        for l in range(j):
+            Hm[l, j] = Hm[j, l]
 
 
 @njit(cache=True)
@@ -487,9 +495,9 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, 
     stop at once: the QP's predicted decrease there is <= tol * (1 + J) with the same working
     set, estimated without a new Hessian.
 
-    At z the working-set QP's step is p = -Lh^-T (I - Y (Y'Y)^-1 Y') Lh^-1 r with r = grad +
+    At z the working-set QP's step is p = -Lh^-T (I - Y' (Y Y')^-1 Y) Lh^-1 r with r = grad +
     G_W' lamW (the KKT residual under the multipliers of the QP just solved) and decrease
-    1/2 |(I - Y (Y'Y)^-1 Y') Lh^-1 r|^2, where Lh and Y (= Lh^-1 G_W') are the factors of the
+    1/2 |(I - Y' (Y Y')^-1 Y) Lh^-1 r|^2, where Lh and Y (= G_W Lh^-T) are the factors of the
     previous iterate's Hessian: after a full Newton step the two Hessians differ by the order
     of the step, so the estimate must be under _EARLY_STOP_MARGIN times the tolerance. The
     working set must still be active at z, and the updated multipliers non-negative (the QP's
@@ -532,23 +540,26 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, 
 
 @njit(cache=True)
 def _project_off(q, Y, Ls, nW, n, tmp, y, lam, r):
-    """lam = -(Y'Y)^-1 Y'q and r = q + Y lam: q with its part in the span of the working set's
-    solved rows Y (factor Ls of Y'Y) removed, and the multipliers that remove it."""
+    """lam = -(Y Y')^-1 Y q and r = q + Y' lam: q with its part in the span of the working set's
+    solved rows Y[:nW] (one per row: Y[a] = Lh^-1 G_W[a]; Ls the factor of Y Y') removed, and the
+    multipliers that remove it."""
     for a in range(nW):
         t = 0.0
         for i in range(n):
-            t += Y[i, a] * q[i]
+            t += Y[a, i] * q[i]
         tmp[a] = t
     if nW > 0:
         fwd_solve(Ls, tmp, y, nW)
         bwd_solve(Ls, y, lam, nW)
     for a in range(nW):
         lam[a] = -lam[a]
+    # r[i] = q[i] + sum_a Y[a, i] lam[a], the terms added in order of a, row by row of Y
     for i in range(n):
-        t = q[i]
-        for a in range(nW):
-            t += Y[i, a] * lam[a]
-        r[i] = t
+        r[i] = q[i]
+    for a in range(nW):
+        la = lam[a]
+        for i in range(n):
+            r[i] += Y[a, i] * la
 
 
 @njit(cache=True)
@@ -623,7 +634,7 @@ def _first_nonzero(row, n):
 @njit(cache=True)
 def _ws_append(y, start, Y, Ls, nW, n, tmp):
     """Append the solved row y = Lh^{-1} G_i (zero before ``start``) to the working set if it
-    is independent of the rows there; returns the new size.
+    is independent of the rows there (as row nW of Y); returns the new size.
 
     n rows already span R^n, so the row is dependent whatever the pivot test says: with a
     full, ill-conditioned working set the residual dd (zero in exact arithmetic) can round
@@ -636,9 +647,9 @@ def _ws_append(y, start, Y, Ls, nW, n, tmp):
     for r in range(nW):
         t = 0.0
         for i in range(start, n):
-            t += Y[i, r] * y[i]
+            t += Y[r, i] * y[i]
         tmp[r] = t
-    # l = Ls^{-1} (Y^T y)
+    # l = Ls^{-1} (Y y)
     for r in range(nW):
         t = tmp[r]
         for k in range(r):
@@ -650,7 +661,7 @@ def _ws_append(y, start, Y, Ls, nW, n, tmp):
     if dd <= _EPS_PIVOT * max(yy, 1e-300) or yy == 0.0:
         return nW
     for i in range(n):
-        Y[i, nW] = y[i]
+        Y[nW, i] = y[i]
     for r in range(nW):
         Ls[nW, r] = tmp[r]
         Ls[r, nW] = 0.0
@@ -700,14 +711,14 @@ def _ws_rebuild(Lh, G, cand, nc, Y, Ls, n, W, inW, y, tmp, Yc, starts):
 
 @njit(cache=True)
 def _ws_delete(Ls, nW, a):
-    """Ls, the Cholesky factor of the working set's Schur complement Y'Y (nW rows), becomes the
+    """Ls, the Cholesky factor of the working set's Schur complement Y Y' (nW rows), becomes the
     factor with row and column a removed, in O((nW - a)^2).
 
-    Y'Y without row and column a is L' L'^T, where L' is Ls without row a: lower triangular
+    Y Y' without row and column a is L' L'^T, where L' is Ls without row a: lower triangular
     except one entry right of the diagonal in each row from a on. Givens rotations of
     neighbouring columns (an orthogonal factor between L' and L'^T) remove those entries from
     the left, leaving a triangular factor with a positive diagonal and a zero last column.
-    Refactoring Y'Y instead costs O(nW^2 n)."""
+    Refactoring Y Y' instead costs O(nW^2 n)."""
     for i in range(a, nW - 1):
         for k in range(i + 2):
             Ls[i, k] = Ls[i + 1, k]
@@ -777,7 +788,7 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
     for it in range(maxit):
         for i in range(n):
             q[i] = w[i] + qg[i]
-        # lam = -S^{-1} Y' q ; r = q + Y lam ; s = -Lh^{-T} r
+        # lam = -(Y Y')^{-1} Y q ; r = q + Y' lam ; s = -Lh^{-T} r
         _project_off(q, Y, Ls, nW, n, tmp, y, lam, r)
         bwd_solve(Lh, r, s, n)
         for i in range(n):
@@ -843,7 +854,7 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
         for a in range(worst, nW - 1):
             W[a] = W[a + 1]
             for i in range(n):
-                Y[i, a] = Y[i, a + 1]
+                Y[a, i] = Y[a + 1, i]
         _ws_delete(Ls, nW, worst)
         nW -= 1
     return 1, nW
@@ -880,7 +891,7 @@ def _shifted_cholesky(H, H0, Lh, tau, min_pivot):
 
 
 @njit(cache=True)
-def convexify(H, Lh, G, b, H0, dmax, Hgn, Lspare):
+def convexify(H, Lh, G, b, H0, dmax, Lspare):
     """Make H positive definite with the least change, keeping its negative curvature useful.
 
     1. rho * G_i' G_i for the constraints active at the current iterate: this leaves the
@@ -891,7 +902,8 @@ def convexify(H, Lh, G, b, H0, dmax, Hgn, Lspare):
        above -lambda_min, the step follows the negative-curvature direction far enough to
        leave saddle points (the straight-braking saddle between a left and a right swerve),
        which a Gauss-Newton or heavily damped step would converge to.
-    3. If even that fails numerically, the Gauss-Newton Hessian (positive definite).
+    3. If even that fails numerically (no shift up to max |H_ii| factors), it returns False and
+       the caller falls back to the Gauss-Newton Hessian (positive definite), formed only then.
 
     The bisection factors its trials into whichever of Lh and Lspare does not hold the factor of
     the current upper end, so the factor of the shift it ends with is at hand, not computed again:
@@ -913,8 +925,7 @@ def convexify(H, Lh, G, b, H0, dmax, Hgn, Lspare):
     while not _shifted_cholesky(H, H0, Lh, hi, min_pivot):
         hi *= _SHIFT_GROWTH
         if hi > dmax:
-            H[:, :] = Hgn
-            return cholesky(H, Lh, n, 0.0)
+            return False
     lo = hi / _SHIFT_GROWTH
     La = Lh           # holds the factor of H0 + hi I
     Lb = Lspare       # the trials'
@@ -942,7 +953,7 @@ def sqp_workspace(N, P):
             np.zeros((n, n)), np.empty((m, n)), np.empty(m), np.empty(m), np.empty(n), np.empty(n),
             np.empty(n, dtype=np.int64), np.zeros(m, dtype=np.bool_), np.empty(n), np.empty((n, n)),
             np.zeros((n, n)), np.empty((n, n)), np.empty((10, max(n, m))), np.empty((N + 1, 4)),
-            np.empty((n, n)), np.empty((n, n)), np.empty(n, dtype=np.int64))
+            np.empty((n, n)), np.empty(n, dtype=np.int64))
 
 
 @njit(cache=True)
@@ -964,7 +975,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
     result (docs/mpc.md, "the cut")."""
     N = z.size // 2
     n = 2 * N
-    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, Hgn, starts) = wk
+    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, starts) = wk
     m = h.size
     exact = P[P_EXACT] > 0.5
     tol = P[P_TOL]
@@ -978,14 +989,17 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
             nW += 1
     J = 0.0
     for it in range(max_iter):
-        J = derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H, Hgn)
+        J = derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H)
         slacks(z, h, dt, b)
         dmax = 0.0
         for i in range(n):
             dmax = max(dmax, abs(H[i, i]))
         if not cholesky(H, Lh, n, _MIN_PIVOT * dmax):
-            if not convexify(H, Lh, G, b, H0, dmax, Hgn, Sm):
-                return ST_QP, J, it
+            if not convexify(H, Lh, G, b, H0, dmax, Sm):
+                # the last resort: the Gauss-Newton Hessian at z (X, S, lam are still z's)
+                hessian(z, X, S, lam, P, False, H)
+                if not cholesky(H, Lh, n, 0.0):
+                    return ST_QP, J, it
         code, nW = qp_active_set(H, Lh, g, G, b, W, nW, qp_max_iter, p, lamW, inW, Y, Ls, Sm, ws, starts)
         gp = 0.0
         for i in range(n):
