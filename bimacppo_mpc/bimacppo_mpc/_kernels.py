@@ -331,7 +331,6 @@ def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
     (dx_l/du_j)' (C_l^xu + A_l' P_{l+1} B_l). That is O(N^2) small products instead of the
     O(N^3) of forming the sum term by term."""
     N = z.size // 2
-    n = 2 * N
     L = P[P_L]
     dt = P[P_DT]
     rollout(x0, z, P, X)
