@@ -177,7 +177,7 @@ def test_hessian_recursion_equals_the_stage_sum():
 
 def _qp_at(x0, xref, up, z, vlo, vhi, zlo, zhi, wk):
     """One SQP iteration's QP at z: (J, pred, code, nW) with wk holding its factors."""
-    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, starts) = wk
+    (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt) = wk
     n = z.size
     X = np.empty((N + 1, 4))
     K.slacks(z, h, P[K.P_DT], b)
@@ -188,10 +188,10 @@ def _qp_at(x0, xref, up, z, vlo, vhi, zlo, zhi, wk):
             nW += 1
     J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H)
     dmax = np.abs(np.diag(H)).max()
-    if not K.cholesky(H, Lh, n, 1e-6 * dmax):
-        assert K.convexify(H, Lh, G, b, H0, dmax, np.empty_like(H))
-    code, nW = K.qp_active_set(H, Lh, g, G, b, W, nW, 200, p, lamW, inW, Y, Ls, Sm, ws, starts)
-    return J, -(g @ p + 0.5 * p @ H @ p), code, nW
+    code, nW = K.qp_null_space(H, g, G, b, W, nW, 200, p, lamW, inW, dmax, P[K.P_DT], qk)
+    assert code != 2
+    gq = qk[13][0][:n]                      # the QP's model gradient g + Hc p
+    return J, -0.5 * (g @ p + gq @ p), code, nW
 
 
 def test_the_early_stop_agrees_with_the_next_qp():
@@ -228,7 +228,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
         if prev is None or pred_end > 1e-3 * tol * (1 + J_end):
             continue                                # not well inside the tolerance: the estimate may differ
         z_prev, p_prev = prev
-        (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, starts) = wk
+        (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt) = wk
         # the factors of the QP at z_prev, then the estimate at z (= z_prev + its full step)
         J_prev, pred_prev, code, nW = _qp_at(x0, xr, up, z_prev, vlo, vhi, zlo, zhi, wk)
         if code != 0:
@@ -236,7 +236,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
         X = np.empty((N + 1, 4))
         K.rollout(x0, z, P, X)
         J = K.cost_of(X, z, xr, up, P)
-        assert K.converged_after_step(x0, z, xr, up, P, X, J, h, Lh, G, W, nW, lamW, Y, Ls, ws, lam, tol)
+        assert K.converged_after_step(x0, z, xr, up, P, X, J, h, H, G, W, nW, qk, lam, tol)
         b_prev = K.slacks(z_prev, h, P[K.P_DT], np.empty(h.size))
         if pred_prev > 100 * tol * (1 + J_prev) and np.all(b_prev[W[:nW]] <= 1e-12):
             # no row entered the working set along the step, so it is active half-way too,
@@ -247,7 +247,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
             Xh = np.empty((N + 1, 4))
             K.rollout(x0, zh, P, Xh)
             Jh = K.cost_of(Xh, zh, xr, up, P)
-            assert not K.converged_after_step(x0, zh, xr, up, P, Xh, Jh, h, Lh, G, W, nW, lamW, Y, Ls, ws, lam, tol)
+            assert not K.converged_after_step(x0, zh, xr, up, P, Xh, Jh, h, H, G, W, nW, qk, lam, tol)
             Jn, pred_n, code_n, _ = _qp_at(x0, xr, up, zh, vlo, vhi, zlo, zhi, wk)
             assert not (code_n == 0 and pred_n <= tol * (1 + Jn))
         checked += 1

@@ -1,57 +1,84 @@
-"""The convexification's shift search (``_kernels.convexify``): on an indefinite Hessian with no
-active row it returns H0 + tau I with tau just above -lambda_min, and the factor it leaves in Lh
-is exactly the Cholesky factor of that matrix, whichever of its trials computed it (the
-bisection factors into a spare buffer and keeps the factor of its last success)."""
+"""The convexification of the QP (``_kernels.factor_reduced``), which acts on the reduced Hessian
+Z'(H + rho * sum_A G_i'G_i + tau * I)Z only: rho stays 0 while that is positive definite, then
+takes the first of dmax * 10^t that makes it so; only then is the smallest shift tau searched
+(trials x8, then bisection), and the factor it leaves is exactly the Cholesky factor of the
+matrix it settles on, whichever trial computed it."""
 import numpy as np
 import pytest
 
 from bimacppo_mpc import _kernels as K
 
-N_VAR = 40
+NF = 30
 
 
-def _indefinite(seed):
+def _indefinite(seed, n=NF):
     rng = np.random.default_rng(seed)
-    Q, _ = np.linalg.qr(rng.standard_normal((N_VAR, N_VAR)))
-    eig = rng.uniform(0.5, 50.0, N_VAR)
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    eig = rng.uniform(0.5, 50.0, n)
     eig[: rng.integers(1, 4)] = -rng.uniform(1e-3, 5.0)      # one to three negative directions
-    return (Q * eig) @ Q.T
+    H = (Q * eig) @ Q.T
+    return 0.5 * (H + H.T)
 
 
-@pytest.mark.parametrize("seed", range(40))
+def _factor(Hb, R, ZtZ, dmax):
+    n = Hb.shape[0]
+    Hr, Lr, Lsp = np.full((n, n), np.nan), np.full((n, n), np.nan), np.full((n, n), np.nan)
+    cv = np.zeros(6)
+    ok = K.factor_reduced(Hr, np.tril(Hb), np.tril(R), np.tril(ZtZ), Lr, Lsp, n, dmax, cv)
+    return ok, Lr, cv
+
+
+@pytest.mark.parametrize("seed", range(30))
 def test_the_shift_search_returns_the_factor_of_the_shifted_matrix(seed):
     H = _indefinite(seed)
-    H = 0.5 * (H + H.T)
-    orig = H.copy()
-    n = N_VAR
-    G = np.eye(n)                      # rows with slack: none is active, so only the shift acts
-    b = np.ones(n)
-    H0 = np.empty_like(H)
-    Lh = np.full_like(H, np.nan)
-    spare = np.full_like(H, np.nan)    # scratch: never read before it is written
+    n = NF
+    rng = np.random.default_rng(100 + seed)
+    B = rng.standard_normal((n, n))
+    ZtZ = B @ B.T / n + np.eye(n)             # a basis' Gram matrix: positive definite, not I
     dmax = np.abs(np.diag(H)).max()
-    assert not K.cholesky(H.copy(), np.empty_like(H), n, K._MIN_PIVOT * dmax)
-    assert K.convexify(H, Lh, G, b, H0, dmax, spare)
-    shift = H - orig
-    tau = shift[0, 0]
-    off = ~np.eye(n, dtype=bool)
-    assert np.array_equal(shift[off], np.zeros(n * n - n)), "only the diagonal moves"
-    assert np.allclose(np.diag(shift), tau, rtol=1e-9, atol=1e-12 * dmax), "by one shift"
-    lam_min = np.linalg.eigvalsh(orig).min()
-    assert -lam_min < tau < 1.2 * -lam_min + 1e-3 * dmax
-    ref = np.empty_like(H)
-    assert K.cholesky(H.copy(), ref, n, K._MIN_PIVOT * dmax)
-    assert np.array_equal(Lh, ref), "the factor in Lh is the factor of the returned H, bit for bit"
-    assert np.allclose(Lh @ Lh.T, H, atol=1e-9 * dmax)
+    ok, Lr, cv = _factor(H, np.zeros((n, n)), ZtZ, dmax)
+    assert ok
+    rho, tau = cv[0], cv[1]
+    assert rho == 0.0, "no active row outside the working set: nothing for rho to act on"
+    # tau is just above the smallest shift that makes H + tau ZtZ positive definite
+    Li = np.linalg.cholesky(ZtZ)
+    crit = -np.linalg.eigvalsh(np.linalg.solve(Li, np.linalg.solve(Li, H).T)).min()
+    assert crit < tau < 1.2 * crit + 1e-3 * dmax
+    ref = np.empty((n, n))
+    assert K.cholesky(H + tau * ZtZ, ref, n, K._MIN_PIVOT * dmax)
+    assert np.array_equal(np.tril(Lr), np.tril(ref)), "the factor is that of the returned matrix, bit for bit"
+
+
+def test_rho_rises_only_as_far_as_needed():
+    """Negative curvature only along the directions of active rows outside the working set:
+    the first rho of the ladder that removes it is taken, and no shift."""
+    rng = np.random.default_rng(4)
+    n = NF
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    eig = rng.uniform(1.0, 10.0, n)
+    eig[0] = -25.0
+    H = (Q * eig) @ Q.T
+    H = 0.5 * (H + H.T)
+    w = Q[:, 0]                                # the row's direction in the basis
+    R = np.outer(w, w)
+    dmax = np.abs(np.diag(H)).max()
+    ok, Lr, cv = _factor(H, R, np.eye(n), dmax)
+    assert ok and cv[1] == 0.0
+    rho = cv[0]
+    assert np.linalg.eigvalsh(H + rho * R).min() > 0.0
+    ladder = [dmax * K._RHO_GROWTH ** t for t in range(K._RHO_TRIES)]
+    assert rho in ladder
+    smaller = [r for r in ladder if r < rho]
+    assert all(np.linalg.eigvalsh(H + r * R).min() <= K._MIN_PIVOT * dmax for r in smaller)
+    # positive definite already: nothing is added
+    ok, _, cv = _factor(np.eye(n) * 3.0, R, np.eye(n), 3.0)
+    assert ok and cv[0] == 0.0 and cv[1] == 0.0
 
 
 def test_a_shift_beyond_the_largest_diagonal_is_left_to_the_caller():
     """A Hessian whose negative curvature exceeds max |H_ii| cannot be shifted within the search
-    (the shifts stop at max |H_ii|): convexify reports failure, and sqp_ws falls back to the
-    Gauss-Newton Hessian, which it forms only then."""
+    (the shifts stop at max |H_ii|): the factorisation reports failure, and sqp_ws falls back to
+    the Gauss-Newton Hessian, which it forms only then."""
     H = np.array([[1.0, 10.0], [10.0, 1.0]])        # eigenvalues -9 and 11, max |H_ii| = 1
-    n = 2
-    G = np.eye(n)
-    b = np.ones(n)
-    dmax = 1.0
-    assert not K.convexify(H, np.empty_like(H), G, b, np.empty_like(H), dmax, np.empty_like(H))
+    ok, _, _ = _factor(H, np.zeros((2, 2)), np.eye(2), 1.0)
+    assert not ok

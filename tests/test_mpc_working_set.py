@@ -1,16 +1,18 @@
-"""The QP's working set never outgrows its n slots: a full working set takes no further row,
-and hold and go problems (stopping on the spot, or a turn with the steering and acceleration
-on their bounds, where the working set fills up) run through solve_batch without an
-out-of-bounds access. numba does not check bounds by default, so an overfull working set
-would write past its arrays and corrupt the heap (a later ``free(): invalid next size``);
-the subprocess test runs the kernels with NUMBA_BOUNDSCHECK=1 and a fresh cache so that
-such a write raises instead."""
+"""The QP's working set: its chain structure (which rows are independent, the null-space basis,
+the multipliers) is the linear algebra of its rows; the Schur-complement part never outgrows
+its n slots (a full working set takes no further row); and hold and go problems (stopping on
+the spot, or a turn with the steering and acceleration on their bounds, where the working set
+fills up) run through solve_batch without an out-of-bounds access. numba does not check bounds
+by default, so an overfull working set would write past its arrays and corrupt the heap (a
+later ``free(): invalid next size``); the subprocess test runs the kernels with
+NUMBA_BOUNDSCHECK=1 and a fresh cache so that such a write raises instead."""
 import os
 import subprocess
 import sys
 import tempfile
 
 import numpy as np
+import pytest
 
 from bimacppo_mpc import _kernels as K
 
@@ -22,17 +24,15 @@ NEAR_PARALLEL = np.array([[0.6672432157058636, 0.4607751075579932],
 
 
 def _fill(G, n, slots):
-    """Offer every row of G to an empty working set whose arrays have `slots` >= n rows (Y holds
-    one solved row per working-set row)."""
-    Lh = np.eye(n)
+    """Offer every row of G (solved against the identity factor) to an empty working set whose
+    arrays have `slots` >= n rows (Y holds one solved row per working-set row)."""
     Y = np.zeros((slots, n))
     Ls = np.zeros((slots, slots))
-    y = np.zeros(n)
     tmp = np.zeros(slots)
     sizes = []
     nW = 0
     for c in range(G.shape[0]):
-        nW = K._ws_add(Lh, G, c, Y, Ls, nW, n, y, tmp)
+        nW = K._ws_append(G[c].copy(), 0, Y, Ls, nW, n, tmp)
         sizes.append(nW)
     return sizes, Y, Ls
 
@@ -69,10 +69,10 @@ from bimacppo_mpc import _kernels as K
 
 G = np.array(%r)
 n = 2
-Y = np.zeros((n, n)); Ls = np.zeros((n, n)); y = np.zeros(n); tmp = np.zeros(n)
+Y = np.zeros((n, n)); Ls = np.zeros((n, n)); tmp = np.zeros(n)
 nW = 0
 for c in range(3):
-    nW = K._ws_add(np.eye(n), G, c, Y, Ls, nW, n, y, tmp)
+    nW = K._ws_append(G[c].copy(), 0, Y, Ls, nW, n, tmp)
 assert nW == n, nW
 
 cfg = MPCConfig.load()
@@ -128,12 +128,14 @@ def test_hold_and_go_problems_stay_in_bounds_under_numba_boundscheck():
     assert out.stdout.strip().endswith(f"SOLVED {episodes * 16 * 15}")
 
 
-def _constraint_rows():
-    """The packaged controller's constraint rows (bounds, speed tube, steering rate) and a
-    positive definite Hessian factor of its size."""
+def _constraints(rate=True):
+    """The packaged controller's constraint rows (bounds, speed tube and, with ``rate``, the
+    steering rate) in the order of build_constraints."""
     from bimacppo_mpc import MPCConfig
     from bimacppo_mpc.controller import pack_params
     cfg = MPCConfig.load()
+    if not rate:
+        cfg = cfg.replace(steer_rate_max=None)
     P = pack_params(cfg)
     N = cfg.horizon
     n = 2 * N
@@ -141,43 +143,72 @@ def _constraint_rows():
     G, h = np.empty((m, n)), np.empty(m)
     zlo, zhi = np.full(n, -1.0), np.full(n, 1.0)
     K.build_constraints(3.0, np.zeros(N), np.full(N, 10.0), zlo, zhi, P, G, h)
-    rng = np.random.default_rng(3)
-    A = rng.standard_normal((n, n))
-    H = A @ A.T + 0.5 * np.eye(n)
-    Lh = np.zeros((n, n))
-    assert K.cholesky(H, Lh, n, 0.0)
-    return G, Lh, n, rng
+    return G, N, P[K.P_DT]
 
 
-def test_the_one_pass_rebuild_is_the_row_by_row_appends():
-    """qp_active_set rebuilds its working set with all row solves in one pass over Lh; the set,
-    its basis Y and factor Ls must be those of appending the rows one by one (the QP's iterates
-    depend on them), also when rows are dependent (a bound and its mirror, more rows than n)."""
-    G, Lh, n, rng = _constraint_rows()
-    m = G.shape[0]
+def _working_set(G, N, dt, cand):
+    """The rows of cand the QP keeps (in order, each if independent of those before) and the
+    chain structure they leave."""
+    link = np.full(2 * N, -1, dtype=np.int64)
+    fix = np.full(2 * N, -1, dtype=np.int64)
+    kept = []
+    for c in cand:
+        if K.independent(c, N, dt, link, fix):
+            K.set_row(c, N, dt, link, fix, c)
+            kept.append(int(c))
+    return kept, link, fix
+
+
+def _basis(N, dt, link, fix):
+    n = 2 * N
+    lab = np.empty(n, dtype=np.int64)
+    colptr = np.empty(n + 1, dtype=np.int64)
+    zidx, zval = np.empty(n * N + 3 * N, dtype=np.int64), np.empty(n * N + 3 * N)
+    iv = np.zeros((n, 3), dtype=np.int64)
+    nf = K.chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv)
+    Z = np.zeros((n, nf))
+    for c in range(nf):
+        Z[zidx[colptr[c]:colptr[c + 1]], c] = zval[colptr[c]:colptr[c + 1]]
+    return Z, lab, iv
+
+
+@pytest.mark.parametrize("rate", [True, False])
+def test_the_chain_structure_is_the_linear_algebra_of_the_rows(rate):
+    """For random sets of constraint rows (bounds and their mirrors, speed rows, steering-rate
+    rows): the rows kept are linearly independent and every row dropped lies in their span; the
+    basis of the free chains spans exactly their null space; the multipliers solve
+    G_W' lam = r for every r in the rows' range; the per-row flags and reduced rows say which
+    rows move along the basis, and by how much."""
+    G, N, dt = _constraints(rate)
+    m, n = G.shape
+    rng = np.random.default_rng(11)
     dropped = 0
-    for trial in range(40):
-        nc = int(rng.integers(1, n + 1))
-        cand = rng.choice(m, nc, replace=False).astype(np.int64)
-        mirror = (cand[0] + n) % (2 * n)     # -G_i of a bound row: dependent on it
-        if trial % 4 == 0 and cand[0] < 2 * n and nc > 1 and mirror not in cand:
-            cand[-1] = mirror
-        Y1, Ls1 = np.zeros((n, n)), np.zeros((n, n))
-        y, tmp = np.zeros(n), np.zeros(max(n, m))
-        W1, nW1 = [], 0
-        for c in cand:
-            nn = K._ws_add(Lh, G, c, Y1, Ls1, nW1, n, y, tmp)
-            if nn > nW1:
-                W1.append(int(c))
-                nW1 = nn
-        Y2, Ls2, W2 = np.zeros((n, n)), np.zeros((n, n)), np.zeros(n, dtype=np.int64)
-        inW = np.zeros(m, dtype=np.bool_)
-        nW2 = K._ws_rebuild(Lh, G, cand.copy(), nc, Y2, Ls2, n, W2, inW, np.zeros(n), np.zeros(max(n, m)),
-                            np.zeros((n, n)), np.zeros(n, dtype=np.int64))
-        assert nW2 == nW1 and list(W2[:nW2]) == W1
-        assert sorted(np.flatnonzero(inW)) == sorted(W1)
-        assert np.array_equal(Y2[:nW2], Y1[:nW1]) and np.array_equal(Ls2[:nW2, :nW2], Ls1[:nW1, :nW1])
-        dropped += nc - nW1
+    for trial in range(60):
+        cand = rng.choice(m, int(rng.integers(1, n + 8)), replace=False).astype(np.int64)
+        kept, link, fix = _working_set(G, N, dt, cand)
+        GW = G[kept]
+        assert np.linalg.matrix_rank(GW) == len(kept)
+        assert np.linalg.matrix_rank(G[cand]) == len(kept), "a dropped row was independent"
+        dropped += len(cand) - len(kept)
+        Z, lab, iv = _basis(N, dt, link, fix)
+        assert Z.shape[1] == n - len(kept)
+        assert np.abs(GW @ Z).max(initial=0.0) < 1e-12
+        assert np.linalg.matrix_rank(Z) == Z.shape[1]
+        r = rng.standard_normal(len(kept)) @ GW
+        lamr, rq = np.full(m, np.nan), np.empty(n)
+        K.working_set_multipliers(r.copy(), N, dt, link, fix, lamr, rq)
+        lam_ref = np.linalg.lstsq(GW.T, r, rcond=None)[0]
+        assert np.allclose(lamr[kept], lam_ref, rtol=1e-9, atol=1e-9 * np.abs(lam_ref).max(initial=1.0))
+        mv = np.zeros(m, dtype=np.bool_)
+        K.move_flags(N, lab, m, mv)
+        GZ = G @ Z
+        assert np.array_equal(mv, np.abs(GZ).max(axis=1, initial=0.0) > 1e-12)
+        w = np.empty(n)
+        for c in rng.choice(m, 12, replace=False):
+            first = K.reduced_row(c, N, dt, iv, w, Z.shape[1])
+            assert np.allclose(w[:Z.shape[1]], GZ[c], atol=1e-12)
+            nz = np.flatnonzero(np.abs(GZ[c]) > 1e-12)
+            assert first == (nz[0] if nz.size else Z.shape[1])
     assert dropped > 0
 
 

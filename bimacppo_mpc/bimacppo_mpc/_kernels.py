@@ -10,8 +10,13 @@ polytope. The kernel runs a line-search SQP on it:
 * the gradient by an adjoint pass, the exact Hessian (costates lambda_k times the curvature
   of the Euler step added to the tracking weights) or its Gauss-Newton part by a backward
   cost-to-go recursion over the forward sensitivities S_k = dx_k/dz (``derivatives``);
-* each QP is solved exactly by a dense primal active-set method (range space, incremental
-  Cholesky of the working-set Schur complement), warm-started with the previous working set;
+* each QP is solved exactly by a primal active-set method in the null space of its working
+  set, warm-started with the previous working set. In the coordinates of the speed and
+  steering profiles every constraint row is a bound on one profile value or on the difference
+  of two neighbours, so a working set splits each profile into chains, the basis of its null
+  space is one 0/1 interval per free chain, and the reduced Hessian is n_free x n_free
+  (``qp_null_space``); the convexification acts on that reduced Hessian only
+  (``factor_reduced``);
 * every iterate is feasible (a convex combination of feasible points), so the merit
   function is the cost itself and bounds hold exactly up to rounding, which a final
   forward clamp removes;
@@ -489,55 +494,6 @@ def hessian(z, X, S, lam, P, curv, Hm):
 
 
 @njit(cache=True)
-def converged_after_step(x0, z, xref, uprev, P, X, J, h, Lh, G, W, nW, lamW, Y, Ls, ws, lam, tol):
-    """True when the next SQP iteration at the accepted full step z (states X, cost J) would
-    stop at once: the QP's predicted decrease there is <= tol * (1 + J) with the same working
-    set, estimated without a new Hessian.
-
-    At z the working-set QP's step is p = -Lh^-T (I - Y' (Y Y')^-1 Y) Lh^-1 r with r = grad +
-    G_W' lamW (the KKT residual under the multipliers of the QP just solved) and decrease
-    1/2 |(I - Y' (Y Y')^-1 Y) Lh^-1 r|^2, where Lh and Y (= G_W Lh^-T) are the factors of the
-    previous iterate's Hessian: after a full Newton step the two Hessians differ by the order
-    of the step, so the estimate must be under _EARLY_STOP_MARGIN times the tolerance. The
-    working set must still be active at z, and the updated multipliers non-negative (the QP's
-    own test), or the next QP would move its working set. When the test holds, the next
-    iteration would return z unchanged: the result is the same, one derivative evaluation,
-    convexification and QP earlier."""
-    n = z.size
-    g = ws[0]
-    b = ws[1]
-    q = ws[2]
-    tmp = ws[3]
-    y = ws[4]
-    r = ws[5]
-    dlam = ws[6]
-    gradient(x0, z, xref, uprev, P, X, lam, g)
-    slacks(z, h, P[P_DT], b)
-    gnorm = 1.0
-    for i in range(n):
-        gnorm = max(gnorm, abs(g[i]))
-    for a in range(nW):
-        if b[W[a]] > _EPS_ACTIVE:
-            return False
-    # r = g + G_W' lamW
-    for a in range(nW):
-        row = G[W[a]]
-        la = lamW[a]
-        for i in range(n):
-            g[i] += la * row[i]
-    fwd_solve(Lh, g, q, n)
-    _project_off(q, Y, Ls, nW, n, tmp, y, dlam, r)
-    for a in range(nW):
-        # the multipliers the next QP would find: lamW + its correction
-        if lamW[a] + dlam[a] < -_EPS_LAM * gnorm:
-            return False
-    pred = 0.0
-    for i in range(n):
-        pred += r[i] * r[i]
-    return 0.5 * pred <= _EARLY_STOP_MARGIN * tol * (1.0 + J)
-
-
-@njit(cache=True)
 def _project_off(q, Y, Ls, nW, n, tmp, y, lam, r):
     """lam = -(Y Y')^-1 Y q and r = q + Y' lam: q with its part in the span of the working set's
     solved rows Y[:nW] (one per row: Y[a] = Lh^-1 G_W[a]; Ls the factor of Y Y') removed, and the
@@ -609,28 +565,6 @@ def bwd_solve(Lc, b, x, m):
 
 
 @njit(cache=True)
-def _ws_add(Lh, G, idx, Y, Ls, nW, n, y, tmp):
-    """Append constraint idx to the working set if independent; returns the new size."""
-    if nW >= n:
-        return nW
-    row = G[idx]
-    # y = Lh^{-1} row is zero before the row's first nonzero, so the solve and the products
-    # start there (the skipped terms are exact zeros: the results are the dense ones)
-    start = _first_nonzero(row, n)
-    fwd_solve_from(Lh, row, y, n, start)
-    return _ws_append(y, start, Y, Ls, nW, n, tmp)
-
-
-@njit(cache=True)
-def _first_nonzero(row, n):
-    """Index of row[:n]'s first nonzero entry (n if none)."""
-    start = 0
-    while start < n and row[start] == 0.0:
-        start += 1
-    return start
-
-
-@njit(cache=True)
 def _ws_append(y, start, Y, Ls, nW, n, tmp):
     """Append the solved row y = Lh^{-1} G_i (zero before ``start``) to the working set if it
     is independent of the rows there (as row nW of Y); returns the new size.
@@ -669,46 +603,6 @@ def _ws_append(y, start, Y, Ls, nW, n, tmp):
 
 
 @njit(cache=True)
-def _ws_rebuild(Lh, G, cand, nc, Y, Ls, n, W, inW, y, tmp, Yc, starts):
-    """The working set of the rows cand[:nc], in that order, dependent ones dropped; returns
-    its size.
-
-    The same appends as one _ws_add per row, with every row's solve Lh^{-1} G_i done first
-    in one pass over Lh (each element's subtractions in the same order as fwd_solve_from,
-    so the rows solve to the same values; a row's terms before its first nonzero are exact
-    zeros): one read of Lh instead of one per row, and the columns of Yc side by side."""
-    if nc == 0:
-        return 0
-    first = n
-    for j in range(nc):
-        starts[j] = _first_nonzero(G[cand[j]], n)
-        first = min(first, starts[j])
-    for i in range(first):
-        for j in range(nc):
-            Yc[i, j] = 0.0
-    for i in range(first, n):
-        for j in range(nc):
-            tmp[j] = G[cand[j], i]
-        for k in range(first, i):
-            lik = Lh[i, k]
-            for j in range(nc):
-                tmp[j] -= lik * Yc[k, j]
-        d = Lh[i, i]
-        for j in range(nc):
-            Yc[i, j] = tmp[j] / d if i >= starts[j] else 0.0
-    nW = 0
-    for j in range(nc):
-        for i in range(n):
-            y[i] = Yc[i, j]
-        nn = _ws_append(y, starts[j], Y, Ls, nW, n, tmp)
-        if nn > nW:
-            W[nW] = cand[j]
-            inW[cand[j]] = True
-            nW = nn
-    return nW
-
-
-@njit(cache=True)
 def _ws_delete(Ls, nW, a):
     """Ls, the Cholesky factor of the working set's Schur complement Y Y' (nW rows), becomes the
     factor with row and column a removed, in O((nW - a)^2).
@@ -740,65 +634,592 @@ def _ws_delete(Ls, nW, a):
         Ls[nW - 1, i] = 0.0
 
 
+# ---------------------------------------------------------------------------------------------
+# The QP in the profile coordinates. A step p of the inputs is a step q of the profiles
+# (q[2k] = change of v_{k+1}, q[2k+1] = change of delta_k; p[2k] = (q[2k] - q[2k-2]) / dt with
+# q[-2] = 0, since v_0 is measured). In q every row of build_constraints is a bound on one value
+# (speed tube, steering box, the first acceleration's box: a "fix" row) or on the difference of
+# two neighbours (acceleration box, steering rate: a "link" row). A working set therefore splits
+# each channel's positions 0..N-1 into chains joined by its link rows; a chain holding a fix row
+# is fixed, every other one moves as a whole. The working set's null space is spanned by one
+# interval indicator per free chain (in p: +1/dt and -1/dt at the ends of a speed interval, ones
+# over a steering interval), a row is dependent exactly when it would join two fixed chains or
+# fix a fixed one, and the multipliers follow by summing the residual along each chain. So the
+# QP works on the reduced Hessian Z'Hc Z of the free chains (about half of n at the closed-loop
+# optimum, where the steering ramps at its rate bound or rests on its box) instead of the n x n
+# Hessian and a Schur complement of every active row.
+# ---------------------------------------------------------------------------------------------
 @njit(cache=True)
-def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, starts):
-    """min 1/2 p'Hp + g'p s.t. G p <= b, from the feasible p = 0 (b >= 0).
+def row_shape(c, N, dt):
+    """Row c of build_constraints in the profile coordinates q: (channel, position k, link, coef).
+    A link row is coef * (q_ch[k] - q_ch[k-1]), a fix row coef * q_ch[k]; channel 0 is the speed
+    (position k = v_{k+1}), 1 the steering (position k = delta_k)."""
+    n = 2 * N
+    if c >= 6 * N:
+        j = c - 6 * N
+        if j >= N - 1:
+            return 1, j - (N - 1) + 1, True, -1.0
+        return 1, j + 1, True, 1.0
+    if c >= 2 * n:
+        k = c - 2 * n
+        if k >= N:
+            return 0, k - N, False, -1.0
+        return 0, k, False, 1.0
+    sign = 1.0
+    if c >= n:
+        c -= n
+        sign = -1.0
+    k = c // 2
+    if c % 2 == 1:
+        return 1, k, False, sign
+    if k == 0:
+        return 0, 0, False, sign / dt
+    return 0, k, True, sign / dt
 
-    W[:nW] is the initial working set (rows assumed active at p = 0; dependent ones are
-    dropped). Returns (code, nW): code 0 optimal, 1 iteration limit (p feasible, not optimal).
-    """
+
+@njit(cache=True)
+def chain_fixed(ch, k, link, fix, N):
+    """Whether the chain through position k of channel ch holds a fix row."""
+    j = k
+    while True:
+        if fix[ch * N + j] >= 0:
+            return True
+        if j == 0 or link[ch * N + j] < 0:
+            break
+        j -= 1
+    j = k + 1
+    while j < N and link[ch * N + j] >= 0:
+        if fix[ch * N + j] >= 0:
+            return True
+        j += 1
+    return False
+
+
+@njit(cache=True)
+def independent(c, N, dt, link, fix):
+    ch, k, is_link, coef = row_shape(c, N, dt)
+    if is_link:
+        if link[ch * N + k] >= 0:
+            return False
+        return not (chain_fixed(ch, k - 1, link, fix, N) and chain_fixed(ch, k, link, fix, N))
+    if fix[ch * N + k] >= 0:
+        return False
+    return not chain_fixed(ch, k, link, fix, N)
+
+
+@njit(cache=True)
+def set_row(c, N, dt, link, fix, val):
+    ch, k, is_link, coef = row_shape(c, N, dt)
+    if is_link:
+        link[ch * N + k] = val
+    else:
+        fix[ch * N + k] = val
+
+
+@njit(cache=True)
+def hz_column(H, N, dt, ch, lo, hi, M, c):
+    """M[:, c] = H z for the interval column [lo, hi] of channel ch (steering: the sum of H's
+    columns over the interval; speed: two columns scaled by +-1/dt)."""
+    n = 2 * N
+    if ch == 1:
+        for i in range(n):
+            t = 0.0
+            for j in range(lo, hi + 1):
+                t += H[i, 2 * j + 1]
+            M[i, c] = t
+    elif hi + 1 < N:
+        for i in range(n):
+            M[i, c] = H[i, 2 * lo] / dt - H[i, 2 * (hi + 1)] / dt
+    else:
+        for i in range(n):
+            M[i, c] = H[i, 2 * lo] / dt
+
+
+@njit(cache=True)
+def move_flags(N, lab, m, mv):
+    """mv[c]: whether row c changes along the basis of the free chains (labels lab), for every
+    row of build_constraints, read off its structure."""
+    n = 2 * N
+    for k in range(N):
+        a = lab[2 * k] >= 0 if k == 0 else lab[2 * (k - 1)] != lab[2 * k]
+        d = lab[2 * k + 1] >= 0
+        mv[2 * k] = a
+        mv[n + 2 * k] = a
+        mv[2 * k + 1] = d
+        mv[n + 2 * k + 1] = d
+        v = lab[2 * k] >= 0
+        mv[2 * n + k] = v
+        mv[2 * n + N + k] = v
+    if m > 6 * N:
+        for k in range(1, N):
+            r = lab[2 * (k - 1) + 1] != lab[2 * k + 1]
+            mv[6 * N + k - 1] = r
+            mv[7 * N - 1 + k - 1] = r
+
+
+@njit(cache=True)
+def chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv):
+    """Columns of the null-space basis in z: one per free chain. Returns their number."""
+    nf = 0
+    nnz = 0
+    for ch in range(2):
+        k = 0
+        while k < N:
+            e = k
+            while e + 1 < N and link[ch * N + e + 1] >= 0:
+                e += 1
+            fixed = False
+            for j in range(k, e + 1):
+                if fix[ch * N + j] >= 0:
+                    fixed = True
+            if fixed:
+                for j in range(k, e + 1):
+                    lab[2 * j + ch] = -1
+            else:
+                for j in range(k, e + 1):
+                    lab[2 * j + ch] = nf
+                iv[nf, 0] = ch
+                iv[nf, 1] = k
+                iv[nf, 2] = e
+                colptr[nf] = nnz
+                if ch == 1:
+                    for j in range(k, e + 1):
+                        zidx[nnz] = 2 * j + 1
+                        zval[nnz] = 1.0
+                        nnz += 1
+                else:
+                    zidx[nnz] = 2 * k
+                    zval[nnz] = 1.0 / dt
+                    nnz += 1
+                    if e + 1 < N:
+                        zidx[nnz] = 2 * (e + 1)
+                        zval[nnz] = -1.0 / dt
+                        nnz += 1
+                nf += 1
+            k = e + 1
+    colptr[nf] = nnz
+    return nf
+
+
+@njit(cache=True)
+def reduced_hessian(H, G, N, dt, link, fix, lab, colptr, zidx, zval, iv, M, Hb, R, ZtZ, A, nA, inW, w):
+    """Basis of the working set's null space, M = H Z, Hb = Z'HZ, R = sum over moving active rows
+    outside W of w w' (w = G_i Z), ZtZ = Z'Z. Returns nf."""
+    nf = chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv)
+    for c in range(nf):
+        hz_column(H, N, dt, iv[c, 0], iv[c, 1], iv[c, 2], M, c)
+    for c1 in range(nf):
+        for c2 in range(c1 + 1):
+            t = 0.0
+            for q in range(colptr[c1], colptr[c1 + 1]):
+                t += zval[q] * M[zidx[q], c2]
+            Hb[c1, c2] = t
+            R[c1, c2] = 0.0
+            ZtZ[c1, c2] = 0.0
+    # Z'Z: columns overlap only where a speed chain ends and the next begins
+    for c in range(nf):
+        t = 0.0
+        for q in range(colptr[c], colptr[c + 1]):
+            t += zval[q] * zval[q]
+        ZtZ[c, c] = t
+    for k in range(1, N):
+        a = lab[2 * (k - 1)]
+        b2 = lab[2 * k]
+        if a >= 0 and b2 >= 0 and a != b2:
+            # z index 2k is -1/dt in chain a (ends at k-1) and +1/dt in chain b2 (starts at k)
+            hi = max(a, b2)
+            lo = min(a, b2)
+            ZtZ[hi, lo] -= 1.0 / (dt * dt)
+    for j in range(nA):
+        c = A[j]
+        if inW[c]:
+            continue
+        ch, k, is_link, coef = row_shape(c, N, dt)
+        for i in range(nf):
+            w[i] = 0.0
+        l1 = lab[2 * k + ch]
+        if l1 >= 0:
+            w[l1] += coef
+        if is_link:
+            l0 = lab[2 * (k - 1) + ch]
+            if l0 >= 0:
+                w[l0] -= coef
+        for c1 in range(nf):
+            if w[c1] == 0.0:
+                continue
+            for c2 in range(c1 + 1):
+                R[c1, c2] += w[c1] * w[c2]
+    return nf
+
+
+@njit(cache=True)
+def _assemble_reduced(Hr, Hb, R, ZtZ, nf, rho, tau):
+    for c1 in range(nf):
+        for c2 in range(c1 + 1):
+            t = Hb[c1, c2] + rho * R[c1, c2] + tau * ZtZ[c1, c2]
+            Hr[c1, c2] = t
+            Hr[c2, c1] = t
+
+
+@njit(cache=True)
+def factor_reduced(Hr, Hb, R, ZtZ, Lr, Lsp, nf, dmax, cv):
+    """Factor Z'(H + rho sum G_i'G_i + tau I)Z, raising rho (0, then dmax * 10^t, t < _RHO_TRIES)
+    and then tau (smallest found by trials x8 and bisection) until it is positive definite.
+    cv = [rho, tau, changed]. Returns False if no shift up to dmax works."""
+    min_pivot = _MIN_PIVOT * dmax
+    rho = cv[0]
+    tau = cv[1]
+    while True:
+        _assemble_reduced(Hr, Hb, R, ZtZ, nf, rho, tau)
+        if cholesky(Hr, Lr, nf, min_pivot):
+            break
+        has_r = False
+        for c in range(nf):
+            if R[c, c] != 0.0:
+                has_r = True
+        if tau == 0.0 and has_r and rho < dmax * _RHO_GROWTH ** (_RHO_TRIES - 1):
+            rho = dmax if rho == 0.0 else rho * _RHO_GROWTH
+            continue
+        hi = _SHIFT0 * dmax if tau == 0.0 else tau * _SHIFT_GROWTH
+        while True:
+            _assemble_reduced(Hr, Hb, R, ZtZ, nf, rho, hi)
+            if cholesky(Hr, Lr, nf, min_pivot):
+                break
+            hi *= _SHIFT_GROWTH
+            if hi > dmax:
+                return False
+        lo = hi / _SHIFT_GROWTH
+        for _ in range(_SHIFT_BISECT):
+            mid = math.sqrt(lo * hi)
+            _assemble_reduced(Hr, Hb, R, ZtZ, nf, rho, mid)
+            if cholesky(Hr, Lsp, nf, min_pivot):
+                hi = mid
+                for i in range(nf):
+                    for j in range(nf):
+                        Lr[i, j] = Lsp[i, j]
+            else:
+                lo = mid
+        tau = hi
+        _assemble_reduced(Hr, Hb, R, ZtZ, nf, rho, tau)
+        break
+    if rho != cv[0] or tau != cv[1]:
+        cv[2] = 1.0
+    cv[0] = rho
+    cv[1] = tau
+    return True
+
+
+@njit(cache=True)
+def hc_product(H, G, A, nA, rho, tau, x, out):
+    """out = Hc x with Hc = H + rho * sum over the active rows A of G_i'G_i + tau * I, the
+    convexified Hessian of the QP (``factor_reduced``)."""
+    n = H.shape[0]
+    for i in range(n):
+        t = 0.0
+        for k in range(n):
+            t += H[i, k] * x[k]
+        out[i] = t + tau * x[i]
+    if rho > 0.0:
+        for j in range(nA):
+            c = A[j]
+            t = 0.0
+            for i in range(n):
+                t += G[c, i] * x[i]
+            if t != 0.0:
+                for i in range(n):
+                    out[i] += rho * t * G[c, i]
+
+
+@njit(cache=True)
+def working_set_multipliers(r, N, dt, link, fix, lamr, rq):
+    """lamr[c] for every row c of the working set (links and fixes) with G_W' lam = r."""
+    for k in range(N):
+        nxt = r[2 * k + 2] if k + 1 < N else 0.0
+        rq[2 * k] = (r[2 * k] - nxt) / dt
+        rq[2 * k + 1] = r[2 * k + 1]
+    for ch in range(2):
+        k = 0
+        while k < N:
+            e = k
+            while e + 1 < N and link[ch * N + e + 1] >= 0:
+                e += 1
+            f = -1
+            for j in range(k, e + 1):
+                if fix[ch * N + j] >= 0:
+                    f = j
+            last = e if f < 0 else f
+            # from the left end: phi_{j+1} = phi_j - rq[j]
+            phi = 0.0
+            for j in range(k, last):
+                phi = phi - rq[2 * j + ch]
+                c = link[ch * N + j + 1]
+                _, _, _, coef = row_shape(c, N, dt)
+                lamr[c] = phi / coef
+            phi_left = phi
+            if f >= 0:
+                phi = 0.0
+                for j in range(e, f, -1):
+                    phi = rq[2 * j + ch] + phi
+                    c = link[ch * N + j]
+                    _, _, _, coef = row_shape(c, N, dt)
+                    lamr[c] = phi / coef
+                cf = fix[ch * N + f]
+                _, _, _, coef = row_shape(cf, N, dt)
+                lamr[cf] = (rq[2 * f + ch] - phi_left + phi) / coef
+            k = e + 1
+
+
+@njit(cache=True)
+def row_on_interval(c, N, dt, ch, lo, hi):
+    """G_c z for the basis column of the q interval [lo, hi] of channel ch."""
+    rch, k, is_link, coef = row_shape(c, N, dt)
+    if rch != ch:
+        return 0.0
+    v = coef if lo <= k <= hi else 0.0
+    if is_link and lo <= k - 1 <= hi:
+        v -= coef
+    return v
+
+
+@njit(cache=True)
+def reduced_row(c, N, dt, iv, w, nf):
+    """w = Z' G_c' (the row in the basis); returns the index of its first nonzero (nf if none)."""
+    first = nf
+    for j in range(nf):
+        w[j] = row_on_interval(c, N, dt, iv[j, 0], iv[j, 1], iv[j, 2])
+        if w[j] != 0.0 and first == nf:
+            first = j
+    return first
+
+
+@njit(cache=True)
+def append_column(H, N, dt, ch, lo, hi, nf, colptr, zidx, zval, iv, M, A, nA, cv, Lr, dmax, zd, hcol):
+    """Border the basis with the interval column [lo, hi] of channel ch: its entries, H z, its
+    row of Z'Hc Z and the factor's new row. False if the bordered matrix is not safely positive
+    definite (the caller rebuilds with more convexification)."""
+    n = 2 * N
+    nnz = colptr[nf]
+    if ch == 1:
+        for j in range(lo, hi + 1):
+            zidx[nnz] = 2 * j + 1
+            zval[nnz] = 1.0
+            nnz += 1
+    else:
+        zidx[nnz] = 2 * lo
+        zval[nnz] = 1.0 / dt
+        nnz += 1
+        if hi + 1 < N:
+            zidx[nnz] = 2 * (hi + 1)
+            zval[nnz] = -1.0 / dt
+            nnz += 1
+    colptr[nf + 1] = nnz
+    iv[nf, 0] = ch
+    iv[nf, 1] = lo
+    iv[nf, 2] = hi
+    hz_column(H, N, dt, ch, lo, hi, M, nf)
+    # the new row of Z'Hc Z: H part, tau z'z, rho over the active rows outside W
+    for i in range(n):
+        zd[i] = 0.0
+    for k in range(colptr[nf], nnz):
+        zd[zidx[k]] = zval[k]
+    for j in range(nf + 1):
+        t = 0.0
+        tz = 0.0
+        for k in range(colptr[j], colptr[j + 1]):
+            t += zval[k] * M[zidx[k], nf]
+            tz += zval[k] * zd[zidx[k]]
+        hcol[j] = t + cv[1] * tz
+    if cv[0] > 0.0:
+        for a in range(nA):
+            c = A[a]
+            gn = row_on_interval(c, N, dt, ch, lo, hi)
+            if gn == 0.0:
+                continue
+            for j in range(nf + 1):
+                gj = row_on_interval(c, N, dt, iv[j, 0], iv[j, 1], iv[j, 2])
+                hcol[j] += cv[0] * gn * gj
+    # the factor's new row: l = Lr^-1 hcol[:nf], d = sqrt(h_nn - l'l)
+    for i in range(nf):
+        t = hcol[i]
+        for k in range(i):
+            t -= Lr[i, k] * Lr[nf, k]
+        Lr[nf, i] = t / Lr[i, i]
+    d2 = hcol[nf]
+    for k in range(nf):
+        d2 -= Lr[nf, k] * Lr[nf, k]
+    if d2 <= _MIN_PIVOT * dmax or d2 <= _EPS_PIVOT * abs(hcol[nf]):
+        return False
+    Lr[nf, nf] = math.sqrt(d2)
+    for i in range(nf):
+        Lr[i, nf] = 0.0
+    return True
+
+
+@njit(cache=True)
+def _chol_rank1(L, e, m):
+    """L L' + e e' = L' L'' in place (e is overwritten)."""
+    for k in range(m):
+        lkk = L[k, k]
+        r = math.hypot(lkk, e[k])
+        c = r / lkk
+        sn = e[k] / lkk
+        L[k, k] = r
+        for i in range(k + 1, m):
+            L[i, k] = (L[i, k] + sn * e[i]) / c
+            e[i] = c * e[i] - sn * L[i, k]
+
+
+@njit(cache=True)
+def _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s):
+    """gq += Hc Z pr (the model's gradient moved along the steps since the rebuild), pr = 0."""
+    n = 2 * N
+    for i in range(n):
+        s[i] = 0.0
+    for c in range(nf):
+        for k in range(colptr[c], colptr[c + 1]):
+            s[zidx[k]] += zval[k] * pr[c]
+    for i in range(n):
+        t = 0.0
+        for c in range(nf):
+            t += M[i, c] * pr[c]
+        gq[i] += t + cv[1] * s[i]
+    if cv[0] > 0.0:
+        for j in range(nA):
+            c = A[j]
+            t = 0.0
+            for i in range(n):
+                t += G[c, i] * s[i]
+            if t != 0.0:
+                t *= cv[0]
+                for i in range(n):
+                    gq[i] += t * G[c, i]
+    for c in range(nf):
+        pr[c] = 0.0
+
+
+@njit(cache=True)
+def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
+    """min 1/2 p'Hc p + g'p s.t. G p <= b, from the feasible p = 0 (b >= 0), with Hc the
+    convexified Hessian H + rho * sum_A G_i'G_i + tau * I over the rows A active at p = 0
+    (``factor_reduced`` picks rho and tau on the reduced Hessian).
+
+    W[:nW] is the initial working set (rows still active and independent are kept, in order).
+    The working set is W0 followed by W2: W0 is held by the chain structure and its null-space
+    basis Z, whose reduced Hessian Z'Hc Z is factored (Lr) when W0 is built; rows that block a
+    step join W2, handled by the Schur complement of their reduced rows against Lr (the range
+    space of the reduced problem: ``_ws_append``, ``_ws_delete``); a W0 row that leaves adds the
+    direction it frees to the basis as one more column of Z and row of Lr (``append_column``).
+    So a factorisation happens once per QP unless the bordered factor loses positive
+    definiteness, which rebuilds W0 from the whole working set with more convexification.
+
+    q = Lr^-1 Z'(Hc p + g) is kept up to date from the steps (Lr' pr moves by -alpha r, r the
+    projected residual), so an iteration needs no product with H. The
+    model gradient gq = g + Hc p is formed where the multipliers need it and left in
+    qk[13][0] for the SQP's predicted decrease. Returns (code, nW): 0 optimal (lamW holds the
+    multipliers), 1 iteration limit or a numerically dependent blocking row (p feasible, not
+    optimal), 2 no convexification with a shift up to max |H_ii| (the caller falls back to the
+    Gauss-Newton Hessian)."""
     n = g.size
-    m = b.size
-    qg = ws[0]
-    q = ws[1]
-    s = ws[2]
-    y = ws[3]
-    tmp = ws[4]
-    r = ws[5]
-    lam = ws[6]
-    slack = ws[7]
-    Gs = ws[8]
-    w = ws[9]
     N = n // 2
-    dt = G[2 * n, 0]
+    m = b.size
+    (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv) = qk
+    gq = ws[0]
+    s = ws[1]
+    sr = ws[2]
+    gr = ws[3]
+    yv = ws[4]
+    Gs = ws[5]
+    slack = ws[6]
+    tmp = ws[7]
+    q = ws[8]
+    rr = ws[9]
+    lam2 = ws[10]
+    tmp2 = ws[11]
+    qg = ws[12]       # Lr^-1 Z' gq at the last rebuild
+    wr = ws[13]       # Lr' pr: Lr^-1 Z'(gq - gq at the rebuild), kept from the steps
+    pr = ws[14]       # the step since the rebuild in the basis: p = p at the rebuild + Z pr
+    cv[0] = 0.0
+    cv[1] = 0.0
+    cv[2] = 0.0
     for i in range(n):
         p[i] = 0.0
-    for i in range(m):
-        # rows satisfied with equality up to rounding count as active
-        slack[i] = b[i] if b[i] > _EPS_ACTIVE else 0.0
-        inW[i] = False
-    # rebuild the initial working set from the rows still active, dropping dependent ones
-    # (W never holds a row twice: rows enter it only while not in it)
-    cand = W[:nW].copy()
-    nc = 0
-    for c in cand:
-        if slack[c] <= 0.0:
-            cand[nc] = c
-            nc += 1
-    nW = _ws_rebuild(Lh, G, cand, nc, Y, Ls, n, W, inW, y, tmp, Sm, starts)
+        gq[i] = g[i]
+    nA = 0
+    for c in range(m):
+        inW[c] = False
+        if b[c] > _EPS_ACTIVE:
+            slack[c] = b[c]
+        else:
+            slack[c] = 0.0
+            A[nA] = c
+            nA += 1
+    cv[3] = nA
+    for i in range(2 * N):
+        link[i] = -1
+        fix[i] = -1
+    n2 = 0
+    for a in range(nW):
+        c = W[a]
+        if slack[c] > 0.0 or not independent(c, N, dt, link, fix):
+            continue
+        set_row(c, N, dt, link, fix, c)
+        W[n2] = c
+        inW[c] = True
+        n2 += 1
+    nW = n2
+    n0 = nW
     gnorm = 1.0
     for i in range(n):
         gnorm = max(gnorm, abs(g[i]))
-    # q = Lh^{-1} (H p + g) = Lh' p + Lh^{-1} g (H = Lh Lh'), with w = Lh' p kept up to date from
-    # the steps (Lh' s = -r below): O(n) per iteration instead of a product with H and a solve
-    fwd_solve(Lh, g, qg, n)
-    for i in range(n):
-        w[i] = 0.0
+    rebuild = True
+    nf = 0
     for it in range(maxit):
+        if rebuild:
+            # W0 := the whole working set, W2 empty: a new basis and factor
+            for i in range(2 * N):
+                link[i] = -1
+                fix[i] = -1
+            for a in range(nW):
+                set_row(W[a], N, dt, link, fix, W[a])
+            n0 = nW
+            nf = reduced_hessian(H, G, N, dt, link, fix, lab, colptr, zidx, zval, iv, M, Hb, R, ZtZ, A, nA, inW, tmp)
+            cv[4] = nf
+            cv[2] = 0.0
+            if not factor_reduced(Hr, Hb, R, ZtZ, Lr, Lsp, nf, dmax, cv):
+                return 2, nW
+            # the model's gradient at p under this basis' convexification (g itself at p = 0)
+            if it > 0:
+                hc_product(H, G, A, nA, cv[0], cv[1], p, tmp)
+                for i in range(n):
+                    gq[i] = g[i] + tmp[i]
+            move_flags(N, lab, m, mv)
+            for c in range(nf):
+                t = 0.0
+                for k in range(colptr[c], colptr[c + 1]):
+                    t += zval[k] * gq[zidx[k]]
+                gr[c] = t
+                wr[c] = 0.0
+                pr[c] = 0.0
+            fwd_solve(Lr, gr, qg, nf)
+            rebuild = False
+        n2 = nW - n0
+        for c in range(nf):
+            q[c] = qg[c] + wr[c]
+        _project_off(q, Y2, Ls2, n2, nf, tmp2, yv, lam2, rr)
+        bwd_solve(Lr, rr, sr, nf)
         for i in range(n):
-            q[i] = w[i] + qg[i]
-        # lam = -(Y Y')^{-1} Y q ; r = q + Y' lam ; s = -Lh^{-T} r
-        _project_off(q, Y, Ls, nW, n, tmp, y, lam, r)
-        bwd_solve(Lh, r, s, n)
-        for i in range(n):
-            s[i] = -s[i]
+            s[i] = 0.0
+        for c in range(nf):
+            sc = -sr[c]
+            sr[c] = sc
+            for k in range(colptr[c], colptr[c + 1]):
+                s[zidx[k]] += zval[k] * sc
         snorm = 0.0
         for i in range(n):
             snorm = max(snorm, abs(s[i]))
         alpha = 1.0
         block = -1
         if snorm > 0.0:
-            # G s by the rows' structure (unit rows, prefix sums of dt * s_a)
             for j in range(n):
                 Gs[j] = s[j]
                 Gs[n + j] = -s[j]
@@ -813,7 +1234,7 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
                     Gs[6 * N + k - 1] = t
                     Gs[7 * N - 1 + k - 1] = -t
             for c in range(m):
-                if inW[c]:
+                if inW[c] or not mv[c]:
                     Gs[c] = 0.0
                     continue
                 t = Gs[c]
@@ -824,135 +1245,203 @@ def qp_active_set(H, Lh, g, G, b, W, nW, maxit, p, lamW, inW, Y, Ls, Sm, ws, sta
                         block = c
             for i in range(n):
                 p[i] += alpha * s[i]
-                w[i] -= alpha * r[i]
+            for c in range(nf):
+                pr[c] += alpha * sr[c]
+                wr[c] -= alpha * rr[c]
             for c in range(m):
-                if not inW[c]:
+                if Gs[c] != 0.0:
                     slack[c] = max(slack[c] - alpha * Gs[c], 0.0)
         if block >= 0:
             slack[block] = 0.0
-            nn = _ws_add(Lh, G, block, Y, Ls, nW, n, y, tmp)
-            if nn == nW:
-                # numerically dependent blocking row: stop with the feasible p reached so far
+            first = reduced_row(block, N, dt, iv, tmp, nf)
+            fwd_solve_from(Lr, tmp, yv, nf, first)
+            nn = _ws_append(yv, first, Y2, Ls2, n2, nf, tmp2)
+            if nn == n2:
+                _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
                 return 1, nW
             W[nW] = block
             inW[block] = True
-            nW = nn
+            nW += 1
             continue
-        # full step: p is the working-set optimum, lam its multipliers
+        # full step: the working set's minimiser; W2's multipliers came with the projection,
+        # W0's follow from the residual less W2's part by the chain walk
+        _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
+        for i in range(n):
+            tmp[i] = -gq[i]
+        for a in range(n2):
+            c = W[n0 + a]
+            la = lam2[a]
+            lamr[c] = la
+            for i in range(n):
+                tmp[i] -= la * G[c, i]
+        working_set_multipliers(tmp, N, dt, link, fix, lamr, yv)
         worst = -1
         wval = -_EPS_LAM * gnorm
         for a in range(nW):
-            if lam[a] < wval:
-                wval = lam[a]
+            la = lamr[W[a]]
+            if la < wval:
+                wval = la
                 worst = a
         if worst < 0:
             for a in range(nW):
-                lamW[a] = lam[a]
+                lamW[a] = lamr[W[a]]
+            cv[5] = n0
             return 0, nW
-        inW[W[worst]] = False
+        c = W[worst]
+        inW[c] = False
         for a in range(worst, nW - 1):
             W[a] = W[a + 1]
-            for i in range(n):
-                Y[a, i] = Y[a + 1, i]
-        _ws_delete(Ls, nW, worst)
         nW -= 1
+        if worst >= n0:
+            a2 = worst - n0
+            for a in range(a2, n2 - 1):
+                for i in range(nf):
+                    Y2[a, i] = Y2[a + 1, i]
+            _ws_delete(Ls2, n2, a2)
+        else:
+            # a W0 row leaves: the basis gains the direction it freed (an interval of one channel)
+            n0 -= 1
+            ch, k, is_link, coef = row_shape(c, N, dt)
+            set_row(c, N, dt, link, fix, -1)
+            lo = k
+            while lo > 0 and link[ch * N + lo] >= 0:
+                lo -= 1
+            hi = k
+            while hi + 1 < N and link[ch * N + hi + 1] >= 0:
+                hi += 1
+            if is_link:
+                # the chain split at k: [lo, k-1] and [k, hi]; the new direction moves a free part
+                if chain_fixed(ch, k, link, fix, N):
+                    hi = k - 1
+                else:
+                    lo = k
+            _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
+            for j in range(nf):
+                qg[j] += wr[j]
+                wr[j] = 0.0
+            if not append_column(H, N, dt, ch, lo, hi, nf, colptr, zidx, zval, iv, M, A, nA, cv, Lr,
+                                 dmax, tmp, tmp2):
+                rebuild = True
+                continue
+            dnew = Lr[nf, nf]
+            t = 0.0
+            for k2 in range(colptr[nf], colptr[nf + 1]):
+                t += zval[k2] * gq[zidx[k2]]
+            for j in range(nf):
+                t -= Lr[nf, j] * qg[j]
+            qg[nf] = t / dnew
+            wr[nf] = 0.0
+            pr[nf] = 0.0
+            for a in range(n2):
+                cw = W[n0 + a]
+                t = row_on_interval(cw, N, dt, ch, lo, hi)
+                for j in range(nf):
+                    t -= Lr[nf, j] * Y2[a, j]
+                t /= dnew
+                Y2[a, nf] = t
+                tmp2[a] = t
+            _chol_rank1(Ls2, tmp2, n2)
+            for c2 in range(m):
+                if not mv[c2] and row_on_interval(c2, N, dt, ch, lo, hi) != 0.0:
+                    mv[c2] = True
+            nf += 1
+            cv[4] = nf
+    if not rebuild:
+        _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
     return 1, nW
 
 
 @njit(cache=True)
-def _add_active_curvature(H, G, b, rho):
-    n = H.shape[0]
-    for c in range(G.shape[0]):
-        if b[c] > _EPS_ACTIVE:
-            continue
-        for i in range(n):
-            gi = G[c, i]
-            if gi == 0.0:
-                continue
-            for j in range(n):
-                H[i, j] += rho * gi * G[c, j]
+def converged_after_step(x0, z, xref, uprev, P, X, J, h, H, G, W, nW, qk, lam, tol):
+    """True when the next SQP iteration at the accepted full step z (states X, cost J) would
+    stop at once: the QP's predicted decrease there is <= tol * (1 + J) with the same working
+    set, estimated without a new Hessian.
 
-
-@njit(cache=True)
-def _shift(H, H0, tau):
-    """H = H0 + tau I."""
-    n = H.shape[0]
-    for i in range(n):
-        for j in range(n):
-            H[i, j] = H0[i, j]
-        H[i, i] += tau
-
-
-@njit(cache=True)
-def _shifted_cholesky(H, H0, Lh, tau, min_pivot):
-    _shift(H, H0, tau)
-    return cholesky(H, Lh, H.shape[0], min_pivot)
-
-
-@njit(cache=True)
-def convexify(H, Lh, G, b, H0, dmax, Lspare):
-    """Make H positive definite with the least change, keeping its negative curvature useful.
-
-    1. rho * G_i' G_i for the constraints active at the current iterate: this leaves the
-       QP's KKT conditions unchanged as long as those rows stay active (G_i p = 0); the exact
-       Hessian of this cost is often indefinite only along inputs sitting on their bounds.
-    2. Otherwise the smallest diagonal shift tau that makes it positive definite (found by
-       bisection on Cholesky success, as IPOPT's inertia correction does): with tau just
-       above -lambda_min, the step follows the negative-curvature direction far enough to
-       leave saddle points (the straight-braking saddle between a left and a right swerve),
-       which a Gauss-Newton or heavily damped step would converge to.
-    3. If even that fails numerically (no shift up to max |H_ii| factors), it returns False and
-       the caller falls back to the Gauss-Newton Hessian (positive definite), formed only then.
-
-    The bisection factors its trials into whichever of Lh and Lspare does not hold the factor of
-    the current upper end, so the factor of the shift it ends with is at hand, not computed again:
-    the same shift and the same factor as one more ``_shifted_cholesky`` at it. Lspare is scratch.
-    """
-    n = H.shape[0]
-    min_pivot = _MIN_PIVOT * dmax
-    H0[:, :] = H
-    rho = dmax
-    for _ in range(_RHO_TRIES):
-        _add_active_curvature(H, G, b, rho)
-        if cholesky(H, Lh, n, min_pivot):
-            return True
-        H[:, :] = H0
-        rho *= _RHO_GROWTH
-    _add_active_curvature(H, G, b, rho / _RHO_GROWTH)
-    H0[:, :] = H
-    hi = _SHIFT0 * dmax
-    while not _shifted_cholesky(H, H0, Lh, hi, min_pivot):
-        hi *= _SHIFT_GROWTH
-        if hi > dmax:
+    At z the working-set QP's first step is the reduced gradient Z' grad, solved against the
+    last QP's factor Lr and projected off W2 (its Schur complement): decrease 1/2 |r|^2. Lr is
+    the factor of the previous iterate's Hessian: after a full Newton step the two differ by the
+    order of the step, so the estimate must be under _EARLY_STOP_MARGIN times the tolerance.
+    The working set must still be active at z and the multipliers of that step's end point
+    non-negative (W2's from the projection, W0's by the chain walk of the residual), or the
+    next QP would move its working set. When the test holds, the next iteration would return z
+    unchanged: the result is the same, one derivative evaluation, convexification and QP
+    earlier."""
+    n = z.size
+    N = n // 2
+    dt = P[P_DT]
+    (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv) = qk
+    g = ws[0]
+    s = ws[1]
+    sr = ws[2]
+    gr = ws[3]
+    yv = ws[4]
+    b = ws[6]
+    tmp = ws[7]
+    q = ws[8]
+    rr = ws[9]
+    lam2 = ws[10]
+    tmp2 = ws[11]
+    nf = int(cv[4])
+    n0 = int(cv[5])
+    n2 = nW - n0
+    gradient(x0, z, xref, uprev, P, X, lam, g)
+    slacks(z, h, dt, b)
+    for a in range(nW):
+        if b[W[a]] > _EPS_ACTIVE:
             return False
-    lo = hi / _SHIFT_GROWTH
-    La = Lh           # holds the factor of H0 + hi I
-    Lb = Lspare       # the trials'
-    in_lh = True
-    for _ in range(_SHIFT_BISECT):
-        mid = math.sqrt(lo * hi)
-        if _shifted_cholesky(H, H0, Lb, mid, min_pivot):
-            hi = mid
-            La, Lb = Lb, La
-            in_lh = not in_lh
-        else:
-            lo = mid
-    if not in_lh:
-        Lh[:, :] = La
-    _shift(H, H0, hi)
+    gnorm = 1.0
+    for i in range(n):
+        gnorm = max(gnorm, abs(g[i]))
+    for c in range(nf):
+        t = 0.0
+        for k in range(colptr[c], colptr[c + 1]):
+            t += zval[k] * g[zidx[k]]
+        gr[c] = t
+    fwd_solve(Lr, gr, q, nf)
+    _project_off(q, Y2, Ls2, n2, nf, tmp2, yv, lam2, rr)
+    pred = 0.0
+    for c in range(nf):
+        pred += rr[c] * rr[c]
+    pred *= 0.5
+    if not pred <= _EARLY_STOP_MARGIN * tol * (1.0 + J):
+        return False
+    bwd_solve(Lr, rr, sr, nf)
+    for i in range(n):
+        s[i] = 0.0
+    for c in range(nf):
+        for k in range(colptr[c], colptr[c + 1]):
+            s[zidx[k]] -= zval[k] * sr[c]
+    hc_product(H, G, A, int(cv[3]), cv[0], cv[1], s, tmp)
+    for i in range(n):
+        tmp[i] = -(g[i] + tmp[i])
+    for a in range(n2):
+        c = W[n0 + a]
+        lamr[c] = lam2[a]
+        for i in range(n):
+            tmp[i] -= lam2[a] * G[c, i]
+    working_set_multipliers(tmp, N, dt, link, fix, lamr, yv)
+    for a in range(nW):
+        if lamr[W[a]] < -_EPS_LAM * gnorm:
+            return False
     return True
 
 
 @njit(cache=True)
 def sqp_workspace(N, P):
-    """The arrays of one SQP (allocated once per problem and shared by its starts)."""
+    """The arrays of one SQP (allocated once per problem and shared by its starts): the
+    derivatives', the constraints (G = wk[5], h = wk[6]), the step and the working set, and the
+    QP's (``qp_null_space``)."""
     n = 2 * N
     m = n_rows(N, P)
-    return (np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4)), np.empty(n), np.empty((n, n)),
-            np.zeros((n, n)), np.empty((m, n)), np.empty(m), np.empty(m), np.empty(n), np.empty(n),
-            np.empty(n, dtype=np.int64), np.zeros(m, dtype=np.bool_), np.empty(n), np.empty((n, n)),
-            np.zeros((n, n)), np.empty((n, n)), np.empty((10, max(n, m))), np.empty((N + 1, 4)),
-            np.empty((n, n)), np.empty(n, dtype=np.int64))
+    qk = (np.full(2 * N, -1, dtype=np.int64), np.full(2 * N, -1, dtype=np.int64), np.empty(n, dtype=np.int64),
+          np.empty(n + 1, dtype=np.int64), np.empty(n * N + 3 * N, dtype=np.int64), np.empty(n * N + 3 * N),
+          np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
+          np.empty((n, n)), np.empty((n, n)), np.empty((15, max(n, m))), np.empty(m, dtype=np.int64),
+          np.empty(m), np.zeros(6), np.empty((n, n)), np.zeros((n, n)), np.zeros(m, dtype=np.bool_),
+          np.zeros((n, 3), dtype=np.int64))
+    return (np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4)), np.empty(n), np.empty((n, n)), qk,
+            np.empty((m, n)), np.empty(m), np.empty(m), np.empty(n), np.empty(n), np.empty(n, dtype=np.int64),
+            np.zeros(m, dtype=np.bool_), np.empty(n), np.empty((N + 1, 4)))
 
 
 @njit(cache=True)
@@ -974,7 +1463,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
     result (docs/mpc.md, "the cut")."""
     N = z.size // 2
     n = 2 * N
-    (S, lam, g, H, Lh, G, h, b, p, zt, W, inW, lamW, Y, Ls, Sm, ws, Xt, H0, starts) = wk
+    (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt) = wk
     m = h.size
     exact = P[P_EXACT] > 0.5
     tol = P[P_TOL]
@@ -993,23 +1482,24 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
         dmax = 0.0
         for i in range(n):
             dmax = max(dmax, abs(H[i, i]))
-        if not cholesky(H, Lh, n, _MIN_PIVOT * dmax):
-            if not convexify(H, Lh, G, b, H0, dmax, Sm):
-                # the last resort: the Gauss-Newton Hessian at z (X, S, lam are still z's)
-                hessian(z, X, S, lam, P, False, H)
-                if not cholesky(H, Lh, n, 0.0):
-                    return ST_QP, J, it
-        code, nW = qp_active_set(H, Lh, g, G, b, W, nW, qp_max_iter, p, lamW, inW, Y, Ls, Sm, ws, starts)
+        code, nW = qp_null_space(H, g, G, b, W, nW, qp_max_iter, p, lamW, inW, dmax, dt, qk)
+        if code == 2:
+            # the last resort: the Gauss-Newton Hessian at z (X, S, lam are still z's)
+            hessian(z, X, S, lam, P, False, H)
+            dmax = 0.0
+            for i in range(n):
+                dmax = max(dmax, abs(H[i, i]))
+            code, nW = qp_null_space(H, g, G, b, W, nW, qp_max_iter, p, lamW, inW, dmax, dt, qk)
+            if code == 2:
+                return ST_QP, J, it
+        # the QP's decrease, with p'Hc p = p'(gq - g) from the QP's model gradient gq = g + Hc p
+        gq = qk[13][0]
         gp = 0.0
+        gqp = 0.0
         for i in range(n):
             gp += g[i] * p[i]
-        php = 0.0
-        for i in range(n):
-            t = 0.0
-            for k in range(n):
-                t += H[i, k] * p[k]
-            php += p[i] * t
-        pred = -(gp + 0.5 * php)
+            gqp += gq[i] * p[i]
+        pred = -0.5 * (gp + gqp)
         if code == 0 and pred <= tol * (1.0 + J):
             return ST_OK, J, it
         if cut > 0.0 and J - cut * pred > j_bar:
@@ -1037,8 +1527,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
         for i in range(n):
             z[i] = zt[i]
         if (code == 0 and alpha == 1.0 and it + 1 < max_iter
-                and converged_after_step(x0, z, xref, uprev, P, Xt, Jt, h, Lh, G, W, nW, lamW, Y, Ls, ws,
-                                         lam, tol)):
+                and converged_after_step(x0, z, xref, uprev, P, Xt, Jt, h, H, G, W, nW, qk, lam, tol)):
             for k in range(N + 1):
                 for i in range(4):
                     X[k, i] = Xt[k, i]
