@@ -1532,7 +1532,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
                 for i in range(4):
                     X[k, i] = Xt[k, i]
             return ST_OK, Jt, it + 1
-        # the working set is kept: qp_active_set drops the rows no longer active at the new z
+        # the working set is kept: qp_null_space drops the rows no longer active at the new z
     rollout(x0, z, P, X)
     return ST_MAX_ITER, cost_of(X, z, xref, uprev, P), max_iter
 
