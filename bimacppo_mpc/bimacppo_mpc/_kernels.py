@@ -286,6 +286,15 @@ def slacks(z, h, dt, b):
 
 
 @njit(cache=True)
+def _stage(X, z, k):
+    """Stage k's speed, steering and the course's cosine and sine, cos/sin(psi_k + delta_k):
+    what every derivative of the Euler step is made of."""
+    d = z[2 * k + 1]
+    psi = X[k, 3]
+    return X[k, 2], d, math.cos(psi + d), math.sin(psi + d)
+
+
+@njit(cache=True)
 def gradient(x0, z, xref, uprev, P, X, lam, g):
     """The cost's gradient at z by one backward (adjoint) pass, X = rollout(x0, z): the same
     derivative as ``derivatives``' g in O(N) instead of through the O(N^2) sensitivities."""
@@ -295,11 +304,7 @@ def gradient(x0, z, xref, uprev, P, X, lam, g):
     for i in range(4):
         lam[N, i] = 2.0 * P[P_QX + i] * (X[N, i] - xref[i])
     for k in range(N - 1, -1, -1):
-        v = X[k, 2]
-        psi = X[k, 3]
-        d = z[2 * k + 1]
-        c = math.cos(psi + d)
-        s = math.sin(psi + d)
+        v, d, c, s = _stage(X, z, k)
         l0 = lam[k + 1, 0]
         l1 = lam[k + 1, 1]
         l2 = lam[k + 1, 2]
@@ -343,11 +348,7 @@ def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
     # forward sensitivities: S[k] = dx_k/dz; columns >= 2k are zero and never written, so S
     # must come zeroed (sqp_workspace's is)
     for k in range(N):
-        v = X[k, 2]
-        psi = X[k, 3]
-        d = z[2 * k + 1]
-        c = math.cos(psi + d)
-        s = math.sin(psi + d)
+        v, d, c, s = _stage(X, z, k)
         a02 = dt * c
         a03 = -dt * v * s
         a12 = dt * s
@@ -396,11 +397,7 @@ def hessian(z, X, S, lam, P, curv, Hm):
     for i in range(4):
         Pn[i, i] = 2.0 * P[P_QX + i]
     for k in range(N - 1, -1, -1):
-        v = X[k, 2]
-        psi = X[k, 3]
-        d = z[2 * k + 1]
-        c = math.cos(psi + d)
-        s = math.sin(psi + d)
+        v, d, c, s = _stage(X, z, k)
         for r in range(4):
             for q in range(4):
                 A[r, q] = 1.0 if r == q else 0.0
@@ -758,6 +755,31 @@ def move_flags(N, lab, m, mv):
 
 
 @njit(cache=True)
+def interval_column(N, dt, ch, lo, hi, nf, colptr, zidx, zval, iv):
+    """Basis column nf: the q interval [lo, hi] of channel ch in the inputs (ones over a steering
+    interval; +1/dt and -1/dt on the accelerations that begin and end a speed interval), its
+    entries from colptr[nf] on; sets colptr[nf + 1] and the column's interval iv[nf]."""
+    nnz = colptr[nf]
+    if ch == 1:
+        for j in range(lo, hi + 1):
+            zidx[nnz] = 2 * j + 1
+            zval[nnz] = 1.0
+            nnz += 1
+    else:
+        zidx[nnz] = 2 * lo
+        zval[nnz] = 1.0 / dt
+        nnz += 1
+        if hi + 1 < N:
+            zidx[nnz] = 2 * (hi + 1)
+            zval[nnz] = -1.0 / dt
+            nnz += 1
+    colptr[nf + 1] = nnz
+    iv[nf, 0] = ch
+    iv[nf, 1] = lo
+    iv[nf, 2] = hi
+
+
+@njit(cache=True)
 def chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv):
     """Columns of the null-space basis in z: one per free chain. Returns their number."""
     nf = 0
@@ -778,23 +800,9 @@ def chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv):
             else:
                 for j in range(k, e + 1):
                     lab[2 * j + ch] = nf
-                iv[nf, 0] = ch
-                iv[nf, 1] = k
-                iv[nf, 2] = e
                 colptr[nf] = nnz
-                if ch == 1:
-                    for j in range(k, e + 1):
-                        zidx[nnz] = 2 * j + 1
-                        zval[nnz] = 1.0
-                        nnz += 1
-                else:
-                    zidx[nnz] = 2 * k
-                    zval[nnz] = 1.0 / dt
-                    nnz += 1
-                    if e + 1 < N:
-                        zidx[nnz] = 2 * (e + 1)
-                        zval[nnz] = -1.0 / dt
-                        nnz += 1
+                interval_column(N, dt, ch, k, e, nf, colptr, zidx, zval, iv)
+                nnz = colptr[nf + 1]
                 nf += 1
             k = e + 1
     colptr[nf] = nnz
@@ -998,24 +1006,8 @@ def append_column(H, N, dt, ch, lo, hi, nf, colptr, zidx, zval, iv, M, A, nA, cv
     row of Z'Hc Z and the factor's new row. False if the bordered matrix is not safely positive
     definite (the caller rebuilds with more convexification)."""
     n = 2 * N
-    nnz = colptr[nf]
-    if ch == 1:
-        for j in range(lo, hi + 1):
-            zidx[nnz] = 2 * j + 1
-            zval[nnz] = 1.0
-            nnz += 1
-    else:
-        zidx[nnz] = 2 * lo
-        zval[nnz] = 1.0 / dt
-        nnz += 1
-        if hi + 1 < N:
-            zidx[nnz] = 2 * (hi + 1)
-            zval[nnz] = -1.0 / dt
-            nnz += 1
-    colptr[nf + 1] = nnz
-    iv[nf, 0] = ch
-    iv[nf, 1] = lo
-    iv[nf, 2] = hi
+    interval_column(N, dt, ch, lo, hi, nf, colptr, zidx, zval, iv)
+    nnz = colptr[nf + 1]
     hz_column(H, N, dt, ch, lo, hi, M, nf)
     # the new row of Z'Hc Z: H part, tau z'z, rho over the active rows outside W
     for i in range(n):
