@@ -1425,6 +1425,14 @@ def sqp_workspace(N, P):
     QP's (``qp_null_space``)."""
     n = 2 * N
     m = n_rows(N, P)
+    # the QP's arrays, in order: link and fix (the W0 row at each channel position, -1: none),
+    # lab (each q index's free chain, -1: fixed), colptr / zidx / zval (the basis columns' entries
+    # in the inputs, room for every column a QP can append), M = H Z, Hb = Z'HZ, R (the released
+    # active rows' w w'), ZtZ, Lr (the factor of Z'Hc Z), Hr and a spare factor (the shift search's
+    # trials), 15 work vectors (ws[0]: the model gradient g + Hc p), A (the rows active at p = 0),
+    # lamr (multipliers by row), cv = [rho, tau, convexification changed, |A|, n_f, |W0|], Y2 and
+    # Ls2 (W2's reduced rows solved against Lr, the factor of their Gram matrix), mv (the rows
+    # that move along Z) and iv (each column's channel and interval)
     qk = (np.full(2 * N, -1, dtype=np.int64), np.full(2 * N, -1, dtype=np.int64), np.empty(n, dtype=np.int64),
           np.empty(n + 1, dtype=np.int64), np.empty(n * N + 3 * N, dtype=np.int64), np.empty(n * N + 3 * N),
           np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
