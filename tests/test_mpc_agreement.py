@@ -236,7 +236,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
         X = np.empty((N + 1, 4))
         K.rollout(x0, z, P, X)
         J = K.cost_of(X, z, xr, up, P)
-        assert K.converged_after_step(x0, z, xr, up, P, X, J, h, H, G, W, nW, qk, lam, tol)
+        assert K.converged_after_step(x0, z, xr, up, P, X, J, h, G, W, nW, qk, lam, tol)
         b_prev = K.slacks(z_prev, h, P[K.P_DT], np.empty(h.size))
         if pred_prev > 100 * tol * (1 + J_prev) and np.all(b_prev[W[:nW]] <= 1e-12):
             # no row entered the working set along the step, so it is active half-way too,
@@ -247,7 +247,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
             Xh = np.empty((N + 1, 4))
             K.rollout(x0, zh, P, Xh)
             Jh = K.cost_of(Xh, zh, xr, up, P)
-            assert not K.converged_after_step(x0, zh, xr, up, P, Xh, Jh, h, H, G, W, nW, qk, lam, tol)
+            assert not K.converged_after_step(x0, zh, xr, up, P, Xh, Jh, h, G, W, nW, qk, lam, tol)
             Jn, pred_n, code_n, _ = _qp_at(x0, xr, up, zh, vlo, vhi, zlo, zhi, wk)
             assert not (code_n == 0 and pred_n <= tol * (1 + Jn))
         checked += 1

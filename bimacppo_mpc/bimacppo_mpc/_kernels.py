@@ -1062,7 +1062,7 @@ def _chol_rank1(L, e, m):
 
 
 @njit(cache=True)
-def _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s):
+def _model_gradient(G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s):
     """gq += Hc Z pr (the model's gradient moved along the steps since the rebuild), pr = 0."""
     n = 2 * N
     for i in range(n):
@@ -1249,7 +1249,7 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
             fwd_solve_from(Lr, tmp, yv, nf, first)
             nn = _ws_append(yv, first, Y2, Ls2, n2, nf, tmp2)
             if nn == n2:
-                _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
+                _model_gradient(G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
                 return 1, nW
             W[nW] = block
             inW[block] = True
@@ -1257,7 +1257,7 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
             continue
         # full step: the working set's minimiser; W2's multipliers came with the projection,
         # W0's follow from the residual less W2's part by the chain walk
-        _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
+        _model_gradient(G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
         for i in range(n):
             tmp[i] = -gq[i]
         for a in range(n2):
@@ -1307,7 +1307,7 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
                     hi = k - 1
                 else:
                     lo = k
-            _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
+            _model_gradient(G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
             for j in range(nf):
                 qg[j] += wr[j]
                 wr[j] = 0.0
@@ -1339,12 +1339,12 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
             nf += 1
             cv[4] = nf
     if not rebuild:
-        _model_gradient(H, G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
+        _model_gradient(G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
     return 1, nW
 
 
 @njit(cache=True)
-def converged_after_step(x0, z, xref, uprev, P, X, J, h, H, G, W, nW, qk, lam, tol):
+def converged_after_step(x0, z, xref, uprev, P, X, J, h, G, W, nW, qk, lam, tol):
     """True when the next SQP iteration at the accepted full step z (states X, cost J) would
     stop at once: the QP's predicted decrease there is <= tol * (1 + J) with the same working
     set, estimated without a new Hessian.
@@ -1397,15 +1397,15 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, H, G, W, nW, qk, lam, t
     pred *= 0.5
     if not pred <= _EARLY_STOP_MARGIN * tol * (1.0 + J):
         return False
+    # the step's end: the model gradient g + Hc Z sr with sr = -Lr^-T r, from M = H Z
     bwd_solve(Lr, rr, sr, nf)
-    for i in range(n):
-        s[i] = 0.0
     for c in range(nf):
-        for k in range(colptr[c], colptr[c + 1]):
-            s[zidx[k]] -= zval[k] * sr[c]
-    hc_product(H, G, A, int(cv[3]), cv[0], cv[1], s, tmp)
+        sr[c] = -sr[c]
     for i in range(n):
-        tmp[i] = -(g[i] + tmp[i])
+        tmp[i] = g[i]
+    _model_gradient(G, A, int(cv[3]), N, cv, M, colptr, zidx, zval, nf, sr, tmp, s)
+    for i in range(n):
+        tmp[i] = -tmp[i]
     for a in range(n2):
         c = W[n0 + a]
         lamr[c] = lam2[a]
@@ -1527,7 +1527,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
         for i in range(n):
             z[i] = zt[i]
         if (code == 0 and alpha == 1.0 and it + 1 < max_iter
-                and converged_after_step(x0, z, xref, uprev, P, Xt, Jt, h, H, G, W, nW, qk, lam, tol)):
+                and converged_after_step(x0, z, xref, uprev, P, Xt, Jt, h, G, W, nW, qk, lam, tol)):
             for k in range(N + 1):
                 for i in range(4):
                     X[k, i] = Xt[k, i]
