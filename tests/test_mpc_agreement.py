@@ -90,14 +90,14 @@ def test_gradient_and_exact_hessian_match_finite_differences():
     up = np.array([0.5, 0.1])
     z = np.c_[rng.uniform(-2, 2, N), rng.uniform(-0.4, 0.4, N)].ravel()
     n = z.size
-    X = np.empty((N + 1, 4))
+    X, T = np.empty((N + 1, 4)), np.empty((N, 4))
     S = np.zeros((N + 1, 4, n))
     lam = np.zeros((N + 1, 4))
     g = np.empty(n)
     H = np.empty((n, n))
-    J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H)
+    J = K.derivatives(x0, z, xref, up, P, True, X, T, S, lam, g, H)
     Hgn = np.empty((n, n))
-    K.hessian(z, X, S, lam, P, False, Hgn)
+    K.hessian(z, X, T, S, lam, P, False, Hgn)
     assert J == pytest.approx(_cost(x0, z, xref, up), rel=1e-14)
     eps = 1e-6
     g_fd = np.array([(_cost(x0, z + eps * e, xref, up) - _cost(x0, z - eps * e, xref, up)) / (2 * eps)
@@ -106,8 +106,8 @@ def test_gradient_and_exact_hessian_match_finite_differences():
     H_fd = np.empty((n, n))
     for j, e in enumerate(np.eye(n)):
         gp, gm = np.empty(n), np.empty(n)
-        K.derivatives(x0, z + eps * e, xref, up, P, False, X, S, lam, gp, np.empty((n, n)))
-        K.derivatives(x0, z - eps * e, xref, up, P, False, X, S, lam, gm, np.empty((n, n)))
+        K.derivatives(x0, z + eps * e, xref, up, P, False, X, T, S, lam, gp, np.empty((n, n)))
+        K.derivatives(x0, z - eps * e, xref, up, P, False, X, T, S, lam, gm, np.empty((n, n)))
         H_fd[:, j] = (gp - gm) / (2 * eps)
     scale = np.abs(H).max()
     assert np.abs(H - H_fd).max() < 1e-5 * scale
@@ -120,10 +120,10 @@ def _hessian_term_by_term(x0, z, xref, up, exact):
     """The single-shooting Hessian summed stage by stage, sum_k V_k' C_k V_k, from the forward
     sensitivities (the O(N^3) definition that derivatives' backward recursion must equal)."""
     n = z.size
-    X = np.empty((N + 1, 4))
+    X, T = np.empty((N + 1, 4)), np.empty((N, 4))
     S = np.zeros((N + 1, 4, n))
     lam = np.zeros((N + 1, 4))
-    K.derivatives(x0, z, xref, up, P, exact, X, S, lam, np.empty(n), np.empty((n, n)))
+    K.derivatives(x0, z, xref, up, P, exact, X, T, S, lam, np.empty(n), np.empty((n, n)))
     L, dt = P[K.P_L], P[K.P_DT]
     Q = np.diag(2.0 * P[K.P_QX:K.P_QX + 4])
     H = sum(S[k].T @ Q @ S[k] for k in range(1, N + 1))
@@ -158,26 +158,27 @@ def test_hessian_recursion_equals_the_stage_sum():
         up = rng.uniform(-0.5, 0.5, 2)
         z = np.c_[rng.uniform(-6, 3, N), rng.uniform(-0.6, 0.6, N)].ravel()
         X, S, lam = np.empty((N + 1, 4)), np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4))
+        T = np.empty((N, 4))
         g, H, Hgn = np.empty(n), np.full((n, n), np.nan), np.full((n, n), np.nan)
-        K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H)
-        K.hessian(z, X, S, lam, P, False, Hgn)      # the Gauss-Newton part at the same z
+        K.derivatives(x0, z, xref, up, P, True, X, T, S, lam, g, H)
+        K.hessian(z, X, T, S, lam, P, False, Hgn)      # the Gauss-Newton part at the same z
         H_ref = _hessian_term_by_term(x0, z, xref, up, True)
         Hgn_ref = _hessian_term_by_term(x0, z, xref, up, False)
         scale = np.abs(H_ref).max()
         assert np.abs(H - H_ref).max() < 1e-12 * scale
         assert np.abs(Hgn - Hgn_ref).max() < 1e-12 * scale
         H2 = np.full((n, n), np.nan)
-        K.derivatives(x0, z, xref, up, P, False, X, S, lam, g, H2)
+        K.derivatives(x0, z, xref, up, P, False, X, T, S, lam, g, H2)
         assert np.abs(H2 - Hgn_ref).max() < 1e-12 * scale
         g2 = np.empty(n)
         K.rollout(x0, z, P, X)
-        K.gradient(x0, z, xref, up, P, X, np.zeros((N + 1, 4)), g2)
+        K.gradient(x0, z, xref, up, P, X, T, np.zeros((N + 1, 4)), g2)
         assert np.array_equal(g2, g)
 
 
 def _qp_at(x0, xref, up, z, vlo, vhi, zlo, zhi, wk):
     """One SQP iteration's QP at z: (J, pred, code, nW) with wk holding its factors."""
-    (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt) = wk
+    (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt, Tc) = wk
     n = z.size
     X = np.empty((N + 1, 4))
     K.slacks(z, h, P[K.P_DT], b)
@@ -186,7 +187,7 @@ def _qp_at(x0, xref, up, z, vlo, vhi, zlo, zhi, wk):
         if b[c] <= 1e-12 and nW < n:
             W[nW] = c
             nW += 1
-    J = K.derivatives(x0, z, xref, up, P, True, X, S, lam, g, H)
+    J = K.derivatives(x0, z, xref, up, P, True, X, Tc, S, lam, g, H)
     dmax = np.abs(np.diag(H)).max()
     code, nW = K.qp_null_space(H, g, G, b, W, nW, 200, p, lamW, inW, dmax, P[K.P_DT], qk)
     assert code != 2
@@ -228,7 +229,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
         if prev is None or pred_end > 1e-3 * tol * (1 + J_end):
             continue                                # not well inside the tolerance: the estimate may differ
         z_prev, p_prev = prev
-        (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt) = wk
+        (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt, Tc) = wk
         # the factors of the QP at z_prev, then the estimate at z (= z_prev + its full step)
         J_prev, pred_prev, code, nW = _qp_at(x0, xr, up, z_prev, vlo, vhi, zlo, zhi, wk)
         if code != 0:
@@ -236,7 +237,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
         X = np.empty((N + 1, 4))
         K.rollout(x0, z, P, X)
         J = K.cost_of(X, z, xr, up, P)
-        assert K.converged_after_step(x0, z, xr, up, P, X, J, h, G, W, nW, qk, lam, tol)
+        assert K.converged_after_step(x0, z, xr, up, P, X, Tc, J, h, G, W, nW, qk, lam, tol)
         b_prev = K.slacks(z_prev, h, P[K.P_DT], np.empty(h.size))
         if pred_prev > 100 * tol * (1 + J_prev) and np.all(b_prev[W[:nW]] <= 1e-12):
             # no row entered the working set along the step, so it is active half-way too,
@@ -247,7 +248,7 @@ def test_the_early_stop_agrees_with_the_next_qp():
             Xh = np.empty((N + 1, 4))
             K.rollout(x0, zh, P, Xh)
             Jh = K.cost_of(Xh, zh, xr, up, P)
-            assert not K.converged_after_step(x0, zh, xr, up, P, Xh, Jh, h, G, W, nW, qk, lam, tol)
+            assert not K.converged_after_step(x0, zh, xr, up, P, Xh, Tc, Jh, h, G, W, nW, qk, lam, tol)
             Jn, pred_n, code_n, _ = _qp_at(x0, xr, up, zh, vlo, vhi, zlo, zhi, wk)
             assert not (code_n == 0 and pred_n <= tol * (1 + Jn))
         checked += 1

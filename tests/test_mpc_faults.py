@@ -92,6 +92,7 @@ def test_a_raising_solver_is_caught(monkeypatch):
         raise RuntimeError("simulated solver crash")
 
     monkeypatch.setattr(K, "solve_batch_kernel", boom)
+    monkeypatch.setattr(K, "solve_one_kernel", boom)
     res = ctrl.solve(X0, REF, UPREV)
     check_fallback(res, X0, UPREV, "simulated solver crash")
     b = ctrl.solve_batch(np.stack([X0, X0]), np.stack([REF, REF]), np.stack([UPREV, UPREV]))

@@ -43,6 +43,31 @@ def test_two_starts_are_never_costlier_than_one():
         assert a.cost <= b.cost * (1 + 1e-12)
 
 
+def test_the_returned_plan_is_the_rollout_of_its_inputs_and_costs_what_it_says():
+    """The kernel re-rolls the plan out only where the second start overwrote the states; with
+    one start, two starts where the second wins, and two starts where the first keeps it, the
+    states are the Euler rollout of the returned inputs and the cost is theirs, bit for bit."""
+    rng = np.random.default_rng(8)
+    cases = [(X0, REF, UPREV, CFG), (X0, REF, UPREV, ONE_START)]
+    for _ in range(12):
+        x0 = np.r_[rng.uniform(-3, 3, 2), rng.uniform(0, 8), rng.uniform(-0.5, 0.5)]
+        ref = np.r_[rng.uniform(0, 12), rng.uniform(-3, 3), rng.choice([0.0, 4.0, 8.0]), rng.uniform(-0.5, 0.5)]
+        cases.append((x0, ref, np.r_[rng.uniform(-2, 2), rng.uniform(-0.6, 0.6)], CFG))
+    starts = set()
+    for x0, ref, up, cfg in cases:
+        ctrl = make_controller(cfg, "fast")
+        r = ctrl.solve(x0, ref, up)
+        assert r.ok
+        starts.add(r.starts)
+        X = np.empty_like(r.X)
+        K.rollout(x0, r.U.ravel().copy(), ctrl.P, X)
+        assert np.array_equal(X, r.X)
+        xr = ref.copy()
+        xr[3] = x0[3] + K.wrap_angle(ref[3] - x0[3])
+        assert r.cost == K.cost_of(X, r.U.ravel().copy(), xr, up, ctrl.P)
+    assert starts == {1, 2}
+
+
 def _batch(B, seed=1):
     rng = np.random.default_rng(seed)
     X0 = np.c_[rng.uniform(-2, 2, (B, 2)), rng.uniform(0, 8, B), rng.uniform(-0.3, 0.3, B)]
@@ -73,6 +98,8 @@ def test_batches_use_the_thread_pool_only_when_large_and_restore_the_thread_coun
     serial, parallel = K.solve_batch_kernel, K.solve_batch_parallel
     monkeypatch.setattr(K, "solve_batch_kernel", lambda *a: (calls.append("serial"), serial(*a)))
     monkeypatch.setattr(K, "solve_batch_parallel", lambda *a: (calls.append(numba.get_num_threads()), parallel(*a)))
+    one = K.solve_one_kernel
+    monkeypatch.setattr(K, "solve_one_kernel", lambda *a: (calls.append("serial"), one(*a)))
     ctrl = make_controller(CFG, "fast")
     before = numba.get_num_threads()
     X0, Xr, Up = _batch(CFG.fast.parallel_min_batch + 2)

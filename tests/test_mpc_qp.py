@@ -41,7 +41,7 @@ def _qps(episodes, exact):
             S, lam, g, H, qk, G, h, b = wk[:8]
             K.build_constraints(x0[2], vlo, vhi, zlo, zhi, P, G, h)
             for _ in range(2):
-                K.derivatives(x0, z, xr, up, P, exact, X, S, lam, g, H)
+                K.derivatives(x0, z, xr, up, P, exact, X, wk[14], S, lam, g, H)
                 K.slacks(z, h, P[K.P_DT], b)
                 yield H.copy(), g.copy(), G, b.copy(), np.flatnonzero(b <= 1e-12)[:n].astype(np.int64)
                 # one SQP step (the QP's full step, projected) for the second QP

@@ -151,12 +151,9 @@ def _working_set(G, N, dt, cand):
     chain structure they leave."""
     link = np.full(2 * N, -1, dtype=np.int64)
     fix = np.full(2 * N, -1, dtype=np.int64)
-    kept = []
-    for c in cand:
-        if K.independent(c, N, dt, link, fix):
-            K.set_row(c, N, dt, link, fix, c)
-            kept.append(int(c))
-    return kept, link, fix
+    rows = np.array(cand, dtype=np.int64)
+    nk = K.add_rows(rows, rows.size, N, dt, link, fix, True)
+    return [int(c) for c in rows[:nk]], link, fix
 
 
 def _basis(N, dt, link, fix):

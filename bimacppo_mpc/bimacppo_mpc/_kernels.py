@@ -90,9 +90,10 @@ _GATE_KMIN_NUM = 3
 _GATE_KMIN_DEN = 4
 _STEER_ON_BOUND = 1e-9   # |delta - bound| below this counts as on the bound
 # the SQP stops after a full step when the next QP's decrease, estimated from the last QP's
-# factors, is below this share of the tolerance (converged_after_step): a margin of 100 for
-# the Hessian's change over the step, so the estimate says yes only where the QP would
-_EARLY_STOP_MARGIN = 1e-2
+# factors, is below this share of the tolerance (converged_after_step): a margin of 10 for
+# the Hessian's change over the step, so the estimate says yes only where the QP would (this
+# close to the optimum the estimate and the next QP's decrease agree to a few per cent)
+_EARLY_STOP_MARGIN = 1e-1
 
 
 # the project's one wrap rule (bimacppo_common.conventions), compiled for the kernels
@@ -286,35 +287,45 @@ def slacks(z, h, dt, b):
 
 
 @njit(cache=True)
-def _stage(X, z, k):
-    """Stage k's speed, steering and the course's cosine and sine, cos/sin(psi_k + delta_k):
-    what every derivative of the Euler step is made of."""
-    d = z[2 * k + 1]
-    psi = X[k, 3]
-    return X[k, 2], d, math.cos(psi + d), math.sin(psi + d)
+def stage_trig(X, z, T):
+    """T[k] = cos and sin of the course psi_k + delta_k and of the steering delta_k, stage by
+    stage: what every derivative of the Euler step is made of. Computed once per point and
+    read by the sensitivities, the gradient and the Hessian, which otherwise spend most of
+    their time in these calls."""
+    N = z.size // 2
+    for k in range(N):
+        d = z[2 * k + 1]
+        psi = X[k, 3]
+        T[k, 0] = math.cos(psi + d)
+        T[k, 1] = math.sin(psi + d)
+        T[k, 2] = math.cos(d)
+        T[k, 3] = math.sin(d)
 
 
 @njit(cache=True)
-def gradient(x0, z, xref, uprev, P, X, lam, g):
-    """The cost's gradient at z by one backward (adjoint) pass, X = rollout(x0, z): the same
-    derivative as ``derivatives``' g in O(N) instead of through the O(N^2) sensitivities."""
+def gradient(x0, z, xref, uprev, P, X, T, lam, g):
+    """The cost's gradient at z by one backward (adjoint) pass, X = rollout(x0, z) and
+    T = stage_trig(X, z): the same derivative as ``derivatives``' g in O(N) instead of through
+    the O(N^2) sensitivities."""
     N = z.size // 2
     L = P[P_L]
     dt = P[P_DT]
     for i in range(4):
         lam[N, i] = 2.0 * P[P_QX + i] * (X[N, i] - xref[i])
     for k in range(N - 1, -1, -1):
-        v, d, c, s = _stage(X, z, k)
+        v = X[k, 2]
+        c = T[k, 0]
+        s = T[k, 1]
         l0 = lam[k + 1, 0]
         l1 = lam[k + 1, 1]
         l2 = lam[k + 1, 2]
         l3 = lam[k + 1, 3]
         g[2 * k] = dt * l2
-        g[2 * k + 1] = -dt * v * s * l0 + dt * v * c * l1 + dt * 2.0 * v / L * math.cos(d) * l3
+        g[2 * k + 1] = -dt * v * s * l0 + dt * v * c * l1 + dt * 2.0 * v / L * T[k, 2] * l3
         if k > 0:
             lam[k, 0] = l0 + 2.0 * P[P_QX] * (X[k, 0] - xref[0])
             lam[k, 1] = l1 + 2.0 * P[P_QX + 1] * (X[k, 1] - xref[1])
-            lam[k, 2] = (l2 + dt * c * l0 + dt * s * l1 + dt * 2.0 / L * math.sin(d) * l3
+            lam[k, 2] = (l2 + dt * c * l0 + dt * s * l1 + dt * 2.0 / L * T[k, 3] * l3
                          + 2.0 * P[P_QX + 2] * (X[k, 2] - xref[2]))
             lam[k, 3] = l3 - dt * v * s * l0 + dt * v * c * l1 + 2.0 * P[P_QX + 3] * (X[k, 3] - xref[3])
     for k in range(N):
@@ -328,10 +339,10 @@ def gradient(x0, z, xref, uprev, P, X, lam, g):
 
 
 @njit(cache=True)
-def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
-    """Cost, gradient and (exact or Gauss-Newton) Hessian of the single-shooting cost; X, S and
-    lam keep the rollout, the forward sensitivities and the costates at z, which
-    ``hessian(..., False, ...)`` reuses for the Gauss-Newton Hessian where it is needed.
+def derivatives(x0, z, xref, uprev, P, exact, X, T, S, lam, g, H):
+    """Cost, gradient and (exact or Gauss-Newton) Hessian of the single-shooting cost; X, T, S
+    and lam keep the rollout, its stage_trig, the forward sensitivities and the costates at z,
+    which ``hessian(..., False, ...)`` reuses for the Gauss-Newton Hessian where it is needed.
 
     The Hessian is sum_k V_k' C_k V_k with V_k = d(x_k, u_k)/dz and C_k the Hessian of stage
     k's Lagrangian (tracking weights plus the costate-weighted curvature of the Euler step;
@@ -345,15 +356,18 @@ def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
     dt = P[P_DT]
     rollout(x0, z, P, X)
     J = cost_of(X, z, xref, uprev, P)
+    stage_trig(X, z, T)
     # forward sensitivities: S[k] = dx_k/dz; columns >= 2k are zero and never written, so S
     # must come zeroed (sqp_workspace's is)
     for k in range(N):
-        v, d, c, s = _stage(X, z, k)
+        v = X[k, 2]
+        c = T[k, 0]
+        s = T[k, 1]
         a02 = dt * c
         a03 = -dt * v * s
         a12 = dt * s
         a13 = dt * v * c
-        a32 = dt * 2.0 / L * math.sin(d)
+        a32 = dt * 2.0 / L * T[k, 3]
         for j in range(2 * k):
             s0 = S[k, 0, j]
             s1 = S[k, 1, j]
@@ -370,51 +384,58 @@ def derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H):
         S[k + 1, 0, 2 * k + 1] = -dt * v * s
         S[k + 1, 1, 2 * k + 1] = dt * v * c
         S[k + 1, 2, 2 * k + 1] = 0.0
-        S[k + 1, 3, 2 * k + 1] = dt * 2.0 * v / L * math.cos(d)
+        S[k + 1, 3, 2 * k + 1] = dt * 2.0 * v / L * T[k, 2]
     # gradient and costates lam[k] = d(cost of x_k..x_N)/dx_k
-    gradient(x0, z, xref, uprev, P, X, lam, g)
-    hessian(z, X, S, lam, P, exact, H)
+    gradient(x0, z, xref, uprev, P, X, T, lam, g)
+    hessian(z, X, T, S, lam, P, exact, H)
     return J
 
 
 @njit(cache=True)
-def hessian(z, X, S, lam, P, curv, Hm):
+def hessian(z, X, T, S, lam, P, curv, Hm):
     """The single-shooting cost's Hessian at z into Hm: exact (curv: the tracking weights plus
     the costate-weighted curvature of the Euler step) or its Gauss-Newton part (the weights
-    alone, always positive definite), from the rollout X, sensitivities S and costates lam
-    that ``derivatives`` left at z (see its docstring for the recursion)."""
+    alone, always positive definite), from the rollout X, its stage_trig T, sensitivities S and
+    costates lam that ``derivatives`` left at z (see its docstring for the recursion).
+
+    The Euler step's Jacobians are the identity plus five entries (A) and four entries (B), and
+    P_{k+1} is symmetric: the small products are written out over those entries in scalars,
+    each sum in the order of the dense product, so the result is the dense recursion's bit for
+    bit at a fraction of its memory traffic."""
     N = z.size // 2
     n = 2 * N
     L = P[P_L]
     dt = P[P_DT]
-    Pn = np.empty((4, 4))
-    A = np.empty((4, 4))
-    B = np.empty((4, 2))
-    PA = np.empty((4, 4))
-    PB = np.empty((4, 2))
-    Kx = np.empty((4, 2))
-    Pn[:, :] = 0.0
-    for i in range(4):
-        Pn[i, i] = 2.0 * P[P_QX + i]
+    q0 = 2.0 * P[P_QX]
+    q1 = 2.0 * P[P_QX + 1]
+    q2 = 2.0 * P[P_QX + 2]
+    q3 = 2.0 * P[P_QX + 3]
+    # P_{k+1}, symmetric: p_rq = p_qr
+    p00 = q0
+    p01 = 0.0
+    p02 = 0.0
+    p03 = 0.0
+    p11 = q1
+    p12 = 0.0
+    p13 = 0.0
+    p22 = q2
+    p23 = 0.0
+    p33 = q3
     for k in range(N - 1, -1, -1):
-        v, d, c, s = _stage(X, z, k)
-        for r in range(4):
-            for q in range(4):
-                A[r, q] = 1.0 if r == q else 0.0
-        A[0, 2] = dt * c
-        A[0, 3] = -dt * v * s
-        A[1, 2] = dt * s
-        A[1, 3] = dt * v * c
-        A[3, 2] = dt * 2.0 / L * math.sin(d)
-        B[0, 0] = 0.0
-        B[1, 0] = 0.0
-        B[2, 0] = dt
-        B[3, 0] = 0.0
-        B[0, 1] = -dt * v * s
-        B[1, 1] = dt * v * c
-        B[2, 1] = 0.0
-        B[3, 1] = dt * 2.0 * v / L * math.cos(d)
-        # costate-weighted second derivatives of the Euler step in (v_k, psi_k, delta_k)
+        v = X[k, 2]
+        c = T[k, 0]
+        s = T[k, 1]
+        cd = T[k, 2]
+        sd = T[k, 3]
+        a02 = dt * c
+        a03 = -dt * v * s
+        a12 = dt * s
+        a13 = dt * v * c
+        a32 = dt * 2.0 / L * sd
+        b20 = dt
+        b01 = -dt * v * s
+        b11 = dt * v * c
+        b31 = dt * 2.0 * v / L * cd
         m_vp = 0.0
         m_vd = 0.0
         m_pp = 0.0
@@ -425,58 +446,72 @@ def hessian(z, X, S, lam, P, curv, Hm):
             lp = lam[k + 1, 3]
             m_vp = dt * (-lx * s + ly * c)
             m_pp = dt * (-lx * v * c - ly * v * s)
-            m_vd = m_vp + lp * dt * 2.0 / L * math.cos(d)
-            m_dd = m_pp - lp * dt * 2.0 * v / L * math.sin(d)
-        # PA = P_{k+1} A, PB = P_{k+1} B
-        for r in range(4):
-            for q in range(4):
-                t = 0.0
-                for i in range(4):
-                    t += Pn[r, i] * A[i, q]
-                PA[r, q] = t
-            for q in range(2):
-                t = 0.0
-                for i in range(4):
-                    t += Pn[r, i] * B[i, q]
-                PB[r, q] = t
-        # u_k's own block: C^uu + B' P B
-        for q1 in range(2):
-            for q2 in range(q1 + 1):
-                t = 0.0
-                for i in range(4):
-                    t += B[i, q1] * PB[i, q2]
-                Hm[2 * k + q1, 2 * k + q2] = t
-        Hm[2 * k + 1, 2 * k + 1] += m_dd
-        # Kx <- C^xu + A' P B
-        for r in range(4):
-            for q in range(2):
-                t = 0.0
-                for i in range(4):
-                    t += A[i, r] * PB[i, q]
-                Kx[r, q] = t
-        Kx[2, 1] += m_vd
-        Kx[3, 1] += m_pp
-        # the blocks of u_j, j < k: (dx_k/du_j)' Kx
-        for q in range(2):
-            row = 2 * k + q
-            for j in range(2 * k):
-                Hm[row, j] = (S[k, 0, j] * Kx[0, q] + S[k, 1, j] * Kx[1, q] + S[k, 2, j] * Kx[2, q]
-                              + S[k, 3, j] * Kx[3, q])
-        # P_k = C^xx + A' P A (not needed at k = 0: x_0 is fixed)
+            m_vd = m_vp + lp * dt * 2.0 / L * cd
+            m_dd = m_pp - lp * dt * 2.0 * v / L * sd
+        # PB = P_{k+1} B (B's nonzeros: b20, b01, b11, b31)
+        pb00 = p02 * b20
+        pb10 = p12 * b20
+        pb20 = p22 * b20
+        pb30 = p23 * b20
+        pb01 = p00 * b01 + p01 * b11 + p03 * b31
+        pb11 = p01 * b01 + p11 * b11 + p13 * b31
+        pb21 = p02 * b01 + p12 * b11 + p23 * b31
+        pb31 = p03 * b01 + p13 * b11 + p33 * b31
+        r0 = 2 * k
+        Hm[r0, r0] = b20 * pb20
+        Hm[r0 + 1, r0] = b01 * pb00 + b11 * pb10 + b31 * pb30
+        Hm[r0 + 1, r0 + 1] = b01 * pb01 + b11 * pb11 + b31 * pb31 + m_dd
+        # Kx = C^xu + A' P B
+        k00 = pb00
+        k10 = pb10
+        k20 = a02 * pb00 + a12 * pb10 + pb20 + a32 * pb30
+        k30 = a03 * pb00 + a13 * pb10 + pb30
+        k01 = pb01
+        k11 = pb11
+        k21 = a02 * pb01 + a12 * pb11 + pb21 + a32 * pb31 + m_vd
+        k31 = a03 * pb01 + a13 * pb11 + pb31 + m_pp
+        for j in range(r0):
+            s0 = S[k, 0, j]
+            s1 = S[k, 1, j]
+            s2 = S[k, 2, j]
+            s3 = S[k, 3, j]
+            Hm[r0, j] = s0 * k00 + s1 * k10 + s2 * k20 + s3 * k30
+            Hm[r0 + 1, j] = s0 * k01 + s1 * k11 + s2 * k21 + s3 * k31
         if k > 0:
-            for r in range(4):
-                for q in range(r + 1):
-                    t = 0.0
-                    for i in range(4):
-                        t += A[i, r] * PA[i, q]
-                    Pn[r, q] = t
-                    Pn[q, r] = t
-            for i in range(4):
-                Pn[i, i] += 2.0 * P[P_QX + i]
-            Pn[2, 3] += m_vp
-            Pn[3, 2] += m_vp
-            Pn[3, 3] += m_pp
-    # input terms
+            # PA = P_{k+1} A (A = I + a02, a03, a12, a13, a32)
+            pa02 = p00 * a02 + p01 * a12 + p02 + p03 * a32
+            pa12 = p01 * a02 + p11 * a12 + p12 + p13 * a32
+            pa22 = p02 * a02 + p12 * a12 + p22 + p23 * a32
+            pa32 = p03 * a02 + p13 * a12 + p23 + p33 * a32
+            pa03 = p00 * a03 + p01 * a13 + p03
+            pa13 = p01 * a03 + p11 * a13 + p13
+            pa33 = p03 * a03 + p13 * a13 + p33
+            # P_k = C^xx + A' P A; PA's columns 0, 1 are P's
+            n00 = p00 + q0
+            n01 = p01
+            n02 = p02
+            n03 = p03
+            n11 = p11 + q1
+            n12 = p12
+            n13 = p13
+            n22 = a02 * pa02 + a12 * pa12 + pa22 + a32 * pa32 + q2
+            n23 = a03 * pa02 + a13 * pa12 + pa32 + m_vp
+            n33 = a03 * pa03 + a13 * pa13 + pa33 + q3 + m_pp
+            # column r = 2, 3 with q = 0, 1: A[:, r]' PA[:, q] = A[:, r]' P[:, q]
+            n02 = a02 * p00 + a12 * p01 + p02 + a32 * p03
+            n12 = a02 * p01 + a12 * p11 + p12 + a32 * p13
+            n03 = a03 * p00 + a13 * p01 + p03
+            n13 = a03 * p01 + a13 * p11 + p13
+            p00 = n00
+            p01 = n01
+            p02 = n02
+            p03 = n03
+            p11 = n11
+            p12 = n12
+            p13 = n13
+            p22 = n22
+            p23 = n23
+            p33 = n33
     for k in range(N):
         for i in range(2):
             j = 2 * k + i
@@ -516,7 +551,10 @@ def _project_off(q, Y, Ls, nW, n, tmp, y, lam, r):
 
 @njit(cache=True)
 def cholesky(A, Lc, m, min_pivot):
-    """Lower Cholesky of A[:m,:m] into Lc; False if a pivot is <= min_pivot (not safely PD)."""
+    """Lower Cholesky of A[:m,:m] into Lc; False if a pivot is <= min_pivot (not safely PD).
+
+    Column j's entries below the diagonal are formed four rows at a time: four independent
+    sums instead of one chain of dependent subtractions, each still summed in the order of k."""
     for j in range(m):
         s = A[j, j]
         for k in range(j):
@@ -525,11 +563,29 @@ def cholesky(A, Lc, m, min_pivot):
             return False
         d = math.sqrt(s)
         Lc[j, j] = d
-        for i in range(j + 1, m):
+        i = j + 1
+        while i + 3 < m:
+            t0 = A[i, j]
+            t1 = A[i + 1, j]
+            t2 = A[i + 2, j]
+            t3 = A[i + 3, j]
+            for k in range(j):
+                ljk = Lc[j, k]
+                t0 -= Lc[i, k] * ljk
+                t1 -= Lc[i + 1, k] * ljk
+                t2 -= Lc[i + 2, k] * ljk
+                t3 -= Lc[i + 3, k] * ljk
+            Lc[i, j] = t0 / d
+            Lc[i + 1, j] = t1 / d
+            Lc[i + 2, j] = t2 / d
+            Lc[i + 3, j] = t3 / d
+            i += 4
+        while i < m:
             t = A[i, j]
             for k in range(j):
                 t -= Lc[i, k] * Lc[j, k]
             Lc[i, j] = t / d
+            i += 1
         for i in range(j):
             Lc[i, j] = 0.0
     return True
@@ -675,61 +731,82 @@ def row_shape(c, N, dt):
 
 
 @njit(cache=True)
-def chain_fixed(ch, k, link, fix, N):
-    """Whether the chain through position k of channel ch holds a fix row."""
-    j = k
-    while True:
-        if fix[ch * N + j] >= 0:
-            return True
-        if j == 0 or link[ch * N + j] < 0:
-            break
-        j -= 1
-    j = k + 1
-    while j < N and link[ch * N + j] >= 0:
-        if fix[ch * N + j] >= 0:
-            return True
-        j += 1
-    return False
+def add_rows(rows, nrows, N, dt, link, fix, check):
+    """Enter rows[:nrows], in order, into the chain structure (link, fix): with check, each row
+    only if it is independent of those already there, i.e. it neither fixes a chain that holds
+    a fix row nor links two such chains (without check every row is entered: a working set
+    already known to be independent). The rows entered are moved to the front of rows, in
+    order; returns their number. The chain walks are written out here rather than called per
+    row: in the compiled kernels a call with array arguments costs more than a row's walk."""
+    kept = 0
+    for a in range(nrows):
+        c = rows[a]
+        ch, k, is_link, coef = row_shape(c, N, dt)
+        base = ch * N
+        if check:
+            # a link row joins the chain ending at k - 1 to the one starting at k; a fix row
+            # fixes the chain through k. Walk the part up to jl, then the part from k.
+            if is_link:
+                if link[base + k] >= 0:
+                    continue
+                jl = k - 1
+            else:
+                jl = k
+            fixed = False
+            j = jl
+            while True:
+                if fix[base + j] >= 0:
+                    fixed = True
+                    break
+                if j == 0 or link[base + j] < 0:
+                    break
+                j -= 1
+            if not is_link and fixed:
+                continue
+            if fixed or not is_link:
+                fixed = False
+                j = k
+                while True:
+                    if fix[base + j] >= 0:
+                        fixed = True
+                        break
+                    if j + 1 >= N or link[base + j + 1] < 0:
+                        break
+                    j += 1
+                if fixed:
+                    continue
+        if is_link:
+            link[base + k] = c
+        else:
+            fix[base + k] = c
+        rows[kept] = c
+        kept += 1
+    return kept
 
 
 @njit(cache=True)
-def independent(c, N, dt, link, fix):
-    ch, k, is_link, coef = row_shape(c, N, dt)
-    if is_link:
-        if link[ch * N + k] >= 0:
-            return False
-        return not (chain_fixed(ch, k - 1, link, fix, N) and chain_fixed(ch, k, link, fix, N))
-    if fix[ch * N + k] >= 0:
-        return False
-    return not chain_fixed(ch, k, link, fix, N)
-
-
-@njit(cache=True)
-def set_row(c, N, dt, link, fix, val):
-    ch, k, is_link, coef = row_shape(c, N, dt)
-    if is_link:
-        link[ch * N + k] = val
-    else:
-        fix[ch * N + k] = val
-
-
-@njit(cache=True)
-def hz_column(H, N, dt, ch, lo, hi, M, c):
-    """M[:, c] = H z for the interval column [lo, hi] of channel ch (steering: the sum of H's
-    columns over the interval; speed: two columns scaled by +-1/dt)."""
+def hz_columns(H, N, dt, iv, c0, c1, M):
+    """M[:, c] = H z for the basis columns c0 <= c < c1, from their intervals iv (steering: the
+    sum of H's columns over the interval; speed: two columns scaled by +-1/dt). One call for a
+    run of columns: a call with array arguments costs more than a column's arithmetic."""
     n = 2 * N
-    if ch == 1:
-        for i in range(n):
-            t = 0.0
-            for j in range(lo, hi + 1):
-                t += H[i, 2 * j + 1]
-            M[i, c] = t
-    elif hi + 1 < N:
-        for i in range(n):
-            M[i, c] = H[i, 2 * lo] / dt - H[i, 2 * (hi + 1)] / dt
-    else:
-        for i in range(n):
-            M[i, c] = H[i, 2 * lo] / dt
+    idt = 1.0 / dt
+    for c in range(c0, c1):
+        ch = iv[c, 0]
+        lo = iv[c, 1]
+        hi = iv[c, 2]
+        if ch == 1:
+            for i in range(n):
+                t = 0.0
+                for j in range(lo, hi + 1):
+                    t += H[i, 2 * j + 1]
+                M[i, c] = t
+        elif hi + 1 < N:
+            for i in range(n):
+                M[i, c] = (H[i, 2 * lo] - H[i, 2 * (hi + 1)]) * idt
+        else:
+            for i in range(n):
+                M[i, c] = H[i, 2 * lo] * idt
 
 
 @njit(cache=True)
@@ -755,35 +832,35 @@ def move_flags(N, lab, m, mv):
 
 
 @njit(cache=True)
-def interval_column(N, dt, ch, lo, hi, nf, colptr, zidx, zval, iv):
-    """Basis column nf: the q interval [lo, hi] of channel ch in the inputs (ones over a steering
-    interval; +1/dt and -1/dt on the accelerations that begin and end a speed interval), its
-    entries from colptr[nf] on; sets colptr[nf + 1] and the column's interval iv[nf]."""
-    nnz = colptr[nf]
-    if ch == 1:
-        for j in range(lo, hi + 1):
-            zidx[nnz] = 2 * j + 1
-            zval[nnz] = 1.0
+def interval_columns(N, dt, iv, c0, c1, colptr, zidx, zval):
+    """The entries of basis columns c0 <= c < c1 in the inputs from their q intervals iv
+    (channel, first, last): ones over a steering interval; +1/dt and -1/dt on the accelerations
+    that begin and end a speed interval. Written from colptr[c0] on; sets colptr[c0 + 1:c1 + 1]."""
+    nnz = colptr[c0]
+    for c in range(c0, c1):
+        ch = iv[c, 0]
+        lo = iv[c, 1]
+        hi = iv[c, 2]
+        if ch == 1:
+            for j in range(lo, hi + 1):
+                zidx[nnz] = 2 * j + 1
+                zval[nnz] = 1.0
+                nnz += 1
+        else:
+            zidx[nnz] = 2 * lo
+            zval[nnz] = 1.0 / dt
             nnz += 1
-    else:
-        zidx[nnz] = 2 * lo
-        zval[nnz] = 1.0 / dt
-        nnz += 1
-        if hi + 1 < N:
-            zidx[nnz] = 2 * (hi + 1)
-            zval[nnz] = -1.0 / dt
-            nnz += 1
-    colptr[nf + 1] = nnz
-    iv[nf, 0] = ch
-    iv[nf, 1] = lo
-    iv[nf, 2] = hi
+            if hi + 1 < N:
+                zidx[nnz] = 2 * (hi + 1)
+                zval[nnz] = -1.0 / dt
+                nnz += 1
+        colptr[c + 1] = nnz
 
 
 @njit(cache=True)
 def chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv):
     """Columns of the null-space basis in z: one per free chain. Returns their number."""
     nf = 0
-    nnz = 0
     for ch in range(2):
         k = 0
         while k < N:
@@ -800,12 +877,13 @@ def chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv):
             else:
                 for j in range(k, e + 1):
                     lab[2 * j + ch] = nf
-                colptr[nf] = nnz
-                interval_column(N, dt, ch, k, e, nf, colptr, zidx, zval, iv)
-                nnz = colptr[nf + 1]
+                iv[nf, 0] = ch
+                iv[nf, 1] = k
+                iv[nf, 2] = e
                 nf += 1
             k = e + 1
-    colptr[nf] = nnz
+    colptr[0] = 0
+    interval_columns(N, dt, iv, 0, nf, colptr, zidx, zval)
     return nf
 
 
@@ -814,16 +892,19 @@ def reduced_hessian(H, G, N, dt, link, fix, lab, colptr, zidx, zval, iv, M, Hb, 
     """Basis of the working set's null space, M = H Z, Hb = Z'HZ, R = sum over moving active rows
     outside W of w w' (w = G_i Z), ZtZ = Z'Z. Returns nf."""
     nf = chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv)
-    for c in range(nf):
-        hz_column(H, N, dt, iv[c, 0], iv[c, 1], iv[c, 2], M, c)
+    hz_columns(H, N, dt, iv, 0, nf, M)
+    # row c1 of Hb = the sum over column c1's entries of zval * (that row of M), entry by entry
+    # in the order of the entries: whole rows at a time, in contiguous memory
     for c1 in range(nf):
         for c2 in range(c1 + 1):
-            t = 0.0
-            for q in range(colptr[c1], colptr[c1 + 1]):
-                t += zval[q] * M[zidx[q], c2]
-            Hb[c1, c2] = t
+            Hb[c1, c2] = 0.0
             R[c1, c2] = 0.0
             ZtZ[c1, c2] = 0.0
+        for q in range(colptr[c1], colptr[c1 + 1]):
+            zq = zval[q]
+            r = zidx[q]
+            for c2 in range(c1 + 1):
+                Hb[c1, c2] += zq * M[r, c2]
     # Z'Z: columns overlap only where a speed chain ends and the next begins
     for c in range(nf):
         t = 0.0
@@ -1006,9 +1087,12 @@ def append_column(H, N, dt, ch, lo, hi, nf, colptr, zidx, zval, iv, M, A, nA, cv
     row of Z'Hc Z and the factor's new row. False if the bordered matrix is not safely positive
     definite (the caller rebuilds with more convexification)."""
     n = 2 * N
-    interval_column(N, dt, ch, lo, hi, nf, colptr, zidx, zval, iv)
+    iv[nf, 0] = ch
+    iv[nf, 1] = lo
+    iv[nf, 2] = hi
+    interval_columns(N, dt, iv, nf, nf + 1, colptr, zidx, zval)
     nnz = colptr[nf + 1]
-    hz_column(H, N, dt, ch, lo, hi, M, nf)
+    hz_columns(H, N, dt, iv, nf, nf + 1, M)
     # the new row of Z'Hc Z: H part, tau z'z, rho over the active rows outside W
     for i in range(n):
         zd[i] = 0.0
@@ -1152,13 +1236,12 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
     n2 = 0
     for a in range(nW):
         c = W[a]
-        if slack[c] > 0.0 or not independent(c, N, dt, link, fix):
-            continue
-        set_row(c, N, dt, link, fix, c)
-        W[n2] = c
-        inW[c] = True
-        n2 += 1
-    nW = n2
+        if slack[c] <= 0.0:
+            W[n2] = c
+            n2 += 1
+    nW = add_rows(W, n2, N, dt, link, fix, True)
+    for a in range(nW):
+        inW[W[a]] = True
     n0 = nW
     gnorm = 1.0
     for i in range(n):
@@ -1167,12 +1250,13 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
     nf = 0
     for it in range(maxit):
         if rebuild:
-            # W0 := the whole working set, W2 empty: a new basis and factor
-            for i in range(2 * N):
-                link[i] = -1
-                fix[i] = -1
-            for a in range(nW):
-                set_row(W[a], N, dt, link, fix, W[a])
+            # W0 := the whole working set, W2 empty: a new basis and factor (at it = 0 link and
+            # fix already hold exactly the working set)
+            if it > 0:
+                for i in range(2 * N):
+                    link[i] = -1
+                    fix[i] = -1
+                add_rows(W, nW, N, dt, link, fix, False)
             n0 = nW
             nf = reduced_hessian(H, G, N, dt, link, fix, lab, colptr, zidx, zval, iv, M, Hb, R, ZtZ, A, nA, inW, tmp)
             cv[4] = nf
@@ -1294,16 +1378,24 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
             # a W0 row leaves: the basis gains the direction it freed (an interval of one channel)
             n0 -= 1
             ch, k, is_link, coef = row_shape(c, N, dt)
-            set_row(c, N, dt, link, fix, -1)
-            lo = k
+            if is_link:
+                link[ch * N + k] = -1
+            else:
+                fix[ch * N + k] = -1
+            # the chain through k, or for a link the two it splits into, [lo, k-1] and [k, hi]
+            lo = k - 1 if is_link else k
             while lo > 0 and link[ch * N + lo] >= 0:
                 lo -= 1
             hi = k
             while hi + 1 < N and link[ch * N + hi + 1] >= 0:
                 hi += 1
             if is_link:
-                # the chain split at k: [lo, k-1] and [k, hi]; the new direction moves a free part
-                if chain_fixed(ch, k, link, fix, N):
+                # the new direction moves the part that is free
+                right_fixed = False
+                for j in range(k, hi + 1):
+                    if fix[ch * N + j] >= 0:
+                        right_fixed = True
+                if right_fixed:
                     hi = k - 1
                 else:
                     lo = k
@@ -1344,7 +1436,7 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
 
 
 @njit(cache=True)
-def converged_after_step(x0, z, xref, uprev, P, X, J, h, G, W, nW, qk, lam, tol):
+def converged_after_step(x0, z, xref, uprev, P, X, T, J, h, G, W, nW, qk, lam, tol):
     """True when the next SQP iteration at the accepted full step z (states X, cost J) would
     stop at once: the QP's predicted decrease there is <= tol * (1 + J) with the same working
     set, estimated without a new Hessian.
@@ -1376,7 +1468,8 @@ def converged_after_step(x0, z, xref, uprev, P, X, J, h, G, W, nW, qk, lam, tol)
     nf = int(cv[4])
     n0 = int(cv[5])
     n2 = nW - n0
-    gradient(x0, z, xref, uprev, P, X, lam, g)
+    stage_trig(X, z, T)
+    gradient(x0, z, xref, uprev, P, X, T, lam, g)
     slacks(z, h, dt, b)
     for a in range(nW):
         if b[W[a]] > _EPS_ACTIVE:
@@ -1433,15 +1526,69 @@ def sqp_workspace(N, P):
     # lamr (multipliers by row), cv = [rho, tau, convexification changed, |A|, n_f, |W0|], Y2 and
     # Ls2 (W2's reduced rows solved against Lr, the factor of their Gram matrix), mv (the rows
     # that move along Z) and iv (each column's channel and interval)
-    qk = (np.full(2 * N, -1, dtype=np.int64), np.full(2 * N, -1, dtype=np.int64), np.empty(n, dtype=np.int64),
-          np.empty(n + 1, dtype=np.int64), np.empty(n * N + 3 * N, dtype=np.int64), np.empty(n * N + 3 * N),
-          np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n)),
-          np.empty((n, n)), np.empty((n, n)), np.empty((15, max(n, m))), np.empty(m, dtype=np.int64),
-          np.empty(m), np.zeros(6), np.empty((n, n)), np.zeros((n, n)), np.zeros(m, dtype=np.bool_),
-          np.zeros((n, 3), dtype=np.int64))
-    return (np.zeros((N + 1, 4, n)), np.zeros((N + 1, 4)), np.empty(n), np.empty((n, n)), qk,
-            np.empty((m, n)), np.empty(m), np.empty(m), np.empty(n), np.empty(n), np.empty(n, dtype=np.int64),
-            np.zeros(m, dtype=np.bool_), np.empty(n), np.empty((N + 1, 4)))
+    # Carved from three buffers (floats, integers, flags) rather than allocated one by one: the
+    # allocations and frees of some forty arrays cost more than a Gauss-Newton step. The arrays
+    # that must start at zero (or -1) are contiguous in their buffer and set in one pass.
+    nz = n * N + 3 * N
+    nn = n * n
+    w = max(n, m)
+    sz_s = (N + 1) * 4 * n
+    sz_x = (N + 1) * 4
+    F = np.empty(6 + nn + sz_s + sz_x + nz + 8 * nn + 15 * w + m + n + nn + m * n + 2 * m + 3 * n + sz_x + 4 * N)
+    o = 6 + nn + sz_s + sz_x
+    F[:o] = 0.0
+    cv = F[0:6]
+    Ls2 = F[6:6 + nn].reshape((n, n))
+    S = F[6 + nn:6 + nn + sz_s].reshape((N + 1, 4, n))
+    lam = F[o - sz_x:o].reshape((N + 1, 4))
+    zval = F[o:o + nz]
+    o += nz
+    M = F[o:o + nn].reshape((n, n))
+    Hb = F[o + nn:o + 2 * nn].reshape((n, n))
+    R = F[o + 2 * nn:o + 3 * nn].reshape((n, n))
+    ZtZ = F[o + 3 * nn:o + 4 * nn].reshape((n, n))
+    Lr = F[o + 4 * nn:o + 5 * nn].reshape((n, n))
+    Hr = F[o + 5 * nn:o + 6 * nn].reshape((n, n))
+    Lsp = F[o + 6 * nn:o + 7 * nn].reshape((n, n))
+    Y2 = F[o + 7 * nn:o + 8 * nn].reshape((n, n))
+    o += 8 * nn
+    ws = F[o:o + 15 * w].reshape((15, w))
+    o += 15 * w
+    lamr = F[o:o + m]
+    o += m
+    g = F[o:o + n]
+    o += n
+    H = F[o:o + nn].reshape((n, n))
+    o += nn
+    G = F[o:o + m * n].reshape((m, n))
+    o += m * n
+    h = F[o:o + m]
+    b = F[o + m:o + 2 * m]
+    o += 2 * m
+    p = F[o:o + n]
+    zt = F[o + n:o + 2 * n]
+    lamW = F[o + 2 * n:o + 3 * n]
+    o += 3 * n
+    Xt = F[o:o + sz_x].reshape((N + 1, 4))
+    Tc = F[o + sz_x:o + sz_x + 4 * N].reshape((N, 4))
+    I = np.empty(4 * N + 3 * n + 2 * n + 1 + nz + m + n, dtype=np.int64)
+    I[:4 * N] = -1
+    I[4 * N:4 * N + 3 * n] = 0
+    link = I[0:2 * N]
+    fix = I[2 * N:4 * N]
+    iv = I[4 * N:4 * N + 3 * n].reshape((n, 3))
+    o = 4 * N + 3 * n
+    lab = I[o:o + n]
+    colptr = I[o + n:o + 2 * n + 1]
+    o += 2 * n + 1
+    zidx = I[o:o + nz]
+    A = I[o + nz:o + nz + m]
+    W = I[o + nz + m:o + nz + m + n]
+    Bf = np.zeros(2 * m, dtype=np.bool_)
+    mv = Bf[0:m]
+    inW = Bf[m:2 * m]
+    qk = (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv)
+    return (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt, Tc)
 
 
 @njit(cache=True)
@@ -1463,7 +1610,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
     result (docs/mpc.md, "the cut")."""
     N = z.size // 2
     n = 2 * N
-    (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt) = wk
+    (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt, Tc) = wk
     m = h.size
     exact = P[P_EXACT] > 0.5
     tol = P[P_TOL]
@@ -1477,7 +1624,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
             nW += 1
     J = 0.0
     for it in range(max_iter):
-        J = derivatives(x0, z, xref, uprev, P, exact, X, S, lam, g, H)
+        J = derivatives(x0, z, xref, uprev, P, exact, X, Tc, S, lam, g, H)
         slacks(z, h, dt, b)
         dmax = 0.0
         for i in range(n):
@@ -1485,7 +1632,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
         code, nW = qp_null_space(H, g, G, b, W, nW, qp_max_iter, p, lamW, inW, dmax, dt, qk)
         if code == 2:
             # the last resort: the Gauss-Newton Hessian at z (X, S, lam are still z's)
-            hessian(z, X, S, lam, P, False, H)
+            hessian(z, X, Tc, S, lam, P, False, H)
             dmax = 0.0
             for i in range(n):
                 dmax = max(dmax, abs(H[i, i]))
@@ -1527,7 +1674,7 @@ def sqp_ws(x0, xref, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, 
         for i in range(n):
             z[i] = zt[i]
         if (code == 0 and alpha == 1.0 and it + 1 < max_iter
-                and converged_after_step(x0, z, xref, uprev, P, Xt, Jt, h, G, W, nW, qk, lam, tol)):
+                and converged_after_step(x0, z, xref, uprev, P, Xt, Tc, Jt, h, G, W, nW, qk, lam, tol)):
             for k in range(N + 1):
                 for i in range(4):
                     X[k, i] = Xt[k, i]
@@ -1725,8 +1872,11 @@ def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter
         wk = sqp_workspace(N, P)
         build_constraints(x0[2], vlo, vhi, zlo, zhi, P, wk[5], wk[6])
         st, J, it = sqp_ws(x0, xr, uprev, z, P, max_iter, qp_max_iter, vlo, vhi, zlo, zhi, X, wk, np.inf)
+        # sqp_ws leaves X and J those of z when it succeeds; the second start overwrites X
+        consistent = True
         if P[P_STEER_START] > 0.5 and max_iter > 0 and (
                 st != ST_OK or P[P_STEER_GATE] < 0.5 or second_start_pays(z, X, xr, new_ref, zlo, zhi, P)):
+            consistent = False
             z2 = np.empty(n)
             bound = steer_bound_start(x0, xr, uprev, z, P, vlo, vhi, zlo, zhi, z2, X)
             if st != ST_OK or P[P_STEER_GATE] < 0.5 or P[P_OTHER_SIDE] < 0.5 or second_start_explores(z, bound):
@@ -1738,9 +1888,10 @@ def solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter
                     st = st2
                     z[:] = z2
     if st == ST_OK:
-        project(z, x0[2], vlo, vhi, zlo, zhi, P)
-        rollout(x0, z, P, X)
-        J = cost_of(X, z, xr, uprev, P)
+        if not consistent:
+            project(z, x0[2], vlo, vhi, zlo, zhi, P)
+            rollout(x0, z, P, X)
+            J = cost_of(X, z, xr, uprev, P)
         finite = math.isfinite(J)
         for k in range(N):
             if not (math.isfinite(z[2 * k]) and math.isfinite(z[2 * k + 1])):
@@ -1785,6 +1936,17 @@ def solve_batch_kernel(X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_
     for bi in range(X0.shape[0]):
         solve_slot(bi, X0, Xref, Uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter, qp_max_iter,
                    Uout, Xout, cost, status, iters, starts)
+
+
+@njit(cache=True)
+def solve_one_kernel(x0, xref, uprev, Uwarm, has_warm, Rprev, guesses, P, max_iter, qp_max_iter, U, X, cost, info):
+    """One problem (the batch of one of solve_batch_kernel) on 1-D inputs and the (N, 2) / (N+1, 4)
+    outputs U, X; info = [status, iterations, starts]. The reshaping happens here, where it costs
+    nothing, instead of in the caller's Python."""
+    N = U.shape[0]
+    solve_slot(0, x0.reshape((1, 4)), xref.reshape((1, 4)), uprev.reshape((1, 2)), Uwarm, has_warm, Rprev,
+               guesses, P, max_iter, qp_max_iter, U.reshape((1, N, 2)), X.reshape((1, N + 1, 4)), cost,
+               info[0:1], info[1:2], info[2:3])
 
 
 @njit(cache=True, parallel=True)

@@ -2,8 +2,9 @@
 
 * ``"ipopt"``: the paper's reference, CasADi ``nlpsol`` + IPOPT in single shooting
   (decision variables = the N inputs only).
-* ``"fast"``: the same problem solved by the numba SQP of ``_kernels`` (exact Hessian,
-  dense active-set QP), reaching the same optimum in a small fraction of the time.
+* ``"fast"``: the same problem solved by the numba SQP of ``_kernels`` (exact Hessian, an
+  active-set QP in the null space of its working set), reaching the same optimum in a small
+  fraction of the time.
 
 Both share the input checks, the heading unwrapping, the speed-bound tube, the rate bounds
 (``_kernels.input_boxes`` and the steering-rate rows), the choice of the initial guess and
@@ -39,7 +40,7 @@ STATUS_TEXT = {
 SOLVERS = ("fast", "ipopt")
 
 
-@dataclass
+@dataclass(slots=True)
 class MPCResult:
     """One control step. ``u`` is always finite and within the input bounds."""
 
@@ -236,9 +237,7 @@ class FastController(MPCController):
         self._lo = (cfg.a_min, cfg.delta_min)
         self._hi = (cfg.a_max, cfg.delta_max)
         self._cost1 = np.empty(1)
-        self._status1 = np.empty(1, dtype=np.int64)
-        self._iters1 = np.empty(1, dtype=np.int64)
-        self._starts1 = np.empty(1, dtype=np.int64)
+        self._info1 = np.empty(3, dtype=np.int64)     # status, iterations, starts of solve()
         self._max_iter, self._qp_max_iter = cfg.fast.max_iter, cfg.fast.qp_max_iter
         self.set_threads(cfg.fast.threads)
 
@@ -251,30 +250,30 @@ class FastController(MPCController):
         self.threads = min(int(threads), numba.config.NUMBA_NUM_THREADS) or numba.config.NUMBA_NUM_THREADS
 
     def solve(self, x0, x_ref, u_prev) -> MPCResult:
-        # The same kernel as solve_batch with B = 1, without the batch bookkeeping: at ~0.1 ms per
-        # solve the Python around the kernel is a sizeable share of the time.
+        # The kernel of solve_batch for one problem, without the batch bookkeeping: at ~0.05 ms
+        # per solve the Python around the kernel is a sizeable share of the time.
         x0 = _vector("x0", x0, 4)
         x_ref = _vector("x_ref", x_ref, 4)
         u_prev = _vector("u_prev", u_prev, 2)
         t0 = time.perf_counter()
         N = self.N
-        U = np.empty((1, N, 2))
-        X = np.empty((1, N + 1, 4))
+        U = np.empty((N, 2))
+        X = np.empty((N + 1, 4))
+        info = self._info1
         try:
-            K.solve_batch_kernel(x0.reshape(1, 4), x_ref.reshape(1, 4), u_prev.reshape(1, 2), self._warm1,
-                                 self._has1, self._ref1, self.guesses, self.P, self._max_iter, self._qp_max_iter,
-                                 U, X, self._cost1, self._status1, self._iters1, self._starts1)
+            K.solve_one_kernel(x0, x_ref, u_prev, self._warm1, self._has1, self._ref1, self.guesses, self.P,
+                               self._max_iter, self._qp_max_iter, U, X, self._cost1, info)
         except Exception:  # the error barrier of _run turns it into the fallback
             return self._single(self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1,
                                           self._ref1), t0)
-        a, d = U[0, 0, 0], U[0, 0, 1]
+        a, d = U.item(0), U.item(1)
         if not (self._lo[0] <= a <= self._hi[0] and self._lo[1] <= d <= self._hi[1]):   # also catches NaN
             return self._single(self._run(x0[None], x_ref[None], u_prev[None], self._warm1, self._has1,
                                           self._ref1), t0)
-        st = int(self._status1[0])
-        return MPCResult(u=U[0, 0].copy(), U=U[0], X=X[0], cost=float(self._cost1[0]), status=STATUS_TEXT[st],
+        st = info.item(0)
+        return MPCResult(u=U[0].copy(), U=U, X=X, cost=self._cost1.item(0), status=STATUS_TEXT[st],
                          ok=st == K.ST_OK, solve_time_s=time.perf_counter() - t0,
-                         iterations=int(self._iters1[0]), starts=int(self._starts1[0]))
+                         iterations=info.item(1), starts=info.item(2))
 
     @staticmethod
     def _single(b: MPCBatchResult, t0: float) -> MPCResult:
