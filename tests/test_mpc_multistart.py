@@ -93,6 +93,30 @@ def test_parallel_batch_equals_serial_batch_bitwise_over_two_steps():
         Up = a.u
 
 
+@pytest.mark.parametrize("workers", [1, 2, 5, 40])
+def test_the_parallel_kernel_solves_every_slot_once_whatever_the_number_of_workers(workers):
+    """The workers take slots from a shared counter: with fewer, as many or more workers than
+    threads and than slots, every slot is solved exactly once (its warm start advanced once, as
+    the serial kernel's) and the results are the serial kernel's."""
+    X0, Xr, Up = _batch(17, seed=4)
+    ctrl = make_controller(CFG, "fast")
+    N, B = CFG.horizon, len(X0)
+
+    def run(kernel, *extra):
+        out = [np.zeros((B, N, 2)), np.zeros(B, dtype=np.bool_), np.zeros((B, 4)), np.full((B, N, 2), np.nan),
+               np.full((B, N + 1, 4), np.nan), np.full(B, np.nan), np.full(B, -9, dtype=np.int64),
+               np.full(B, -9, dtype=np.int64), np.full(B, -9, dtype=np.int64)]
+        for _ in range(2):                 # the second pass runs from the warm starts of the first
+            kernel(X0, Xr, Up, out[0], out[1], out[2], ctrl.guesses, ctrl.P, CFG.fast.max_iter,
+                   CFG.fast.qp_max_iter, *out[3:], *extra)
+        return out
+
+    serial, par = run(K.solve_batch_kernel), run(K.solve_batch_parallel, workers)
+    for a, b in zip(serial, par):
+        assert np.array_equal(a, b, equal_nan=True)
+    assert (par[6] >= 0).all() and (par[8] >= 0).all()       # every status and start count written
+
+
 def test_batches_use_the_thread_pool_only_when_large_and_restore_the_thread_count(monkeypatch):
     calls = []
     serial, parallel = K.solve_batch_kernel, K.solve_batch_parallel

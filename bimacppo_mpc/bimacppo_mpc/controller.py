@@ -293,7 +293,7 @@ class FastController(MPCController):
         before = numba.get_num_threads()
         numba.set_num_threads(self.threads)
         try:
-            K.solve_batch_parallel(*args)
+            K.solve_batch_parallel(*args, self.threads)
         finally:
             numba.set_num_threads(before)
         return None
