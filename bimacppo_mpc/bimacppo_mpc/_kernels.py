@@ -309,6 +309,16 @@ def stage_trig(X, z, T):
 
 
 @njit(cache=True)
+def step_jacobian(v, c, s, cd, sd, dt, L):
+    """The nonzero entries of the Euler step's Jacobians at a stage with speed v, course cosine
+    and sine c, s and steering cosine and sine cd, sd (stage_trig): A = d x_{k+1} / d x_k is the
+    identity plus (a02, a03, a12, a13, a32) in the state order [x, y, v, psi]; B = d x_{k+1} / d u_k
+    has dt at (v, a) and the steering column (a03, a13, 0, b31). Scalars in and out, so the
+    callers' loops over the stages pay no call."""
+    return dt * c, -dt * v * s, dt * s, dt * v * c, dt * 2.0 / L * sd, dt * 2.0 * v / L * cd
+
+
+@njit(cache=True)
 def gradient(x0, z, xref, uprev, P, X, T, lam, g):
     """The cost's gradient at z by one backward (adjoint) pass, X = rollout(x0, z) and
     T = stage_trig(X, z): the same derivative as ``derivatives``' g in O(N) instead of through
@@ -319,21 +329,19 @@ def gradient(x0, z, xref, uprev, P, X, T, lam, g):
     for i in range(4):
         lam[N, i] = 2.0 * P[P_QX + i] * (X[N, i] - xref[i])
     for k in range(N - 1, -1, -1):
-        v = X[k, 2]
-        c = T[k, 0]
-        s = T[k, 1]
+        a02, a03, a12, a13, a32, b31 = step_jacobian(X[k, 2], T[k, 0], T[k, 1], T[k, 2], T[k, 3], dt, L)
         l0 = lam[k + 1, 0]
         l1 = lam[k + 1, 1]
         l2 = lam[k + 1, 2]
         l3 = lam[k + 1, 3]
+        # g_u = B' lam_{k+1}; lam_k = A' lam_{k+1} + the stage's tracking gradient
         g[2 * k] = dt * l2
-        g[2 * k + 1] = -dt * v * s * l0 + dt * v * c * l1 + dt * 2.0 * v / L * T[k, 2] * l3
+        g[2 * k + 1] = a03 * l0 + a13 * l1 + b31 * l3
         if k > 0:
             lam[k, 0] = l0 + 2.0 * P[P_QX] * (X[k, 0] - xref[0])
             lam[k, 1] = l1 + 2.0 * P[P_QX + 1] * (X[k, 1] - xref[1])
-            lam[k, 2] = (l2 + dt * c * l0 + dt * s * l1 + dt * 2.0 / L * T[k, 3] * l3
-                         + 2.0 * P[P_QX + 2] * (X[k, 2] - xref[2]))
-            lam[k, 3] = l3 - dt * v * s * l0 + dt * v * c * l1 + 2.0 * P[P_QX + 3] * (X[k, 3] - xref[3])
+            lam[k, 2] = l2 + a02 * l0 + a12 * l1 + a32 * l3 + 2.0 * P[P_QX + 2] * (X[k, 2] - xref[2])
+            lam[k, 3] = l3 + a03 * l0 + a13 * l1 + 2.0 * P[P_QX + 3] * (X[k, 3] - xref[3])
     for k in range(N):
         for i in range(2):
             j = 2 * k + i
@@ -366,14 +374,7 @@ def derivatives(x0, z, xref, uprev, P, exact, X, T, S, lam, g, H):
     # forward sensitivities: S[k] = dx_k/dz; columns >= 2k are zero and never written, so S
     # must come zeroed (sqp_workspace's is)
     for k in range(N):
-        v = X[k, 2]
-        c = T[k, 0]
-        s = T[k, 1]
-        a02 = dt * c
-        a03 = -dt * v * s
-        a12 = dt * s
-        a13 = dt * v * c
-        a32 = dt * 2.0 / L * T[k, 3]
+        a02, a03, a12, a13, a32, b31 = step_jacobian(X[k, 2], T[k, 0], T[k, 1], T[k, 2], T[k, 3], dt, L)
         for j in range(2 * k):
             s0 = S[k, 0, j]
             s1 = S[k, 1, j]
@@ -387,10 +388,10 @@ def derivatives(x0, z, xref, uprev, P, exact, X, T, S, lam, g, H):
         S[k + 1, 1, 2 * k] = 0.0
         S[k + 1, 2, 2 * k] = dt
         S[k + 1, 3, 2 * k] = 0.0
-        S[k + 1, 0, 2 * k + 1] = -dt * v * s
-        S[k + 1, 1, 2 * k + 1] = dt * v * c
+        S[k + 1, 0, 2 * k + 1] = a03
+        S[k + 1, 1, 2 * k + 1] = a13
         S[k + 1, 2, 2 * k + 1] = 0.0
-        S[k + 1, 3, 2 * k + 1] = dt * 2.0 * v / L * T[k, 2]
+        S[k + 1, 3, 2 * k + 1] = b31
     # gradient and costates lam[k] = d(cost of x_k..x_N)/dx_k
     gradient(x0, z, xref, uprev, P, X, T, lam, g)
     hessian(z, X, T, S, lam, P, exact, H)
@@ -433,15 +434,10 @@ def hessian(z, X, T, S, lam, P, curv, Hm):
         s = T[k, 1]
         cd = T[k, 2]
         sd = T[k, 3]
-        a02 = dt * c
-        a03 = -dt * v * s
-        a12 = dt * s
-        a13 = dt * v * c
-        a32 = dt * 2.0 / L * sd
+        a02, a03, a12, a13, a32, b31 = step_jacobian(v, c, s, cd, sd, dt, L)
         b20 = dt
-        b01 = -dt * v * s
-        b11 = dt * v * c
-        b31 = dt * 2.0 * v / L * cd
+        b01 = a03
+        b11 = a13
         m_vp = 0.0
         m_vd = 0.0
         m_pp = 0.0
@@ -751,8 +747,9 @@ def add_rows(rows, nrows, N, dt, link, fix, check):
         ch, k, is_link, coef = row_shape(c, N, dt)
         base = ch * N
         if check:
-            # a link row joins the chain ending at k - 1 to the one starting at k; a fix row
-            # fixes the chain through k. Walk the part up to jl, then the part from k.
+            # a link row joins the chain ending at k - 1 to the one starting at k (dependent when
+            # both hold a fix row); a fix row fixes the chain through k (dependent when it already
+            # holds one). Walk left from jl, then, unless that decided it, right from k.
             if is_link:
                 if link[base + k] >= 0:
                     continue
@@ -761,27 +758,24 @@ def add_rows(rows, nrows, N, dt, link, fix, check):
                 jl = k
             fixed = False
             j = jl
-            while True:
-                if fix[base + j] >= 0:
-                    fixed = True
-                    break
-                if j == 0 or link[base + j] < 0:
-                    break
-                j -= 1
-            if not is_link and fixed:
-                continue
-            if fixed or not is_link:
-                fixed = False
-                j = k
+            step = -1
+            for side in range(2):
                 while True:
                     if fix[base + j] >= 0:
                         fixed = True
                         break
-                    if j + 1 >= N or link[base + j + 1] < 0:
+                    nb = j if step < 0 else j + 1      # the link to the next position this way
+                    if nb == 0 or nb >= N or link[base + nb] < 0:
                         break
-                    j += 1
-                if fixed:
-                    continue
+                    j += step
+                if side == 0:
+                    if fixed != is_link:               # a fixed part for a fix row, a free one for a link
+                        break
+                    fixed = False
+                    j = k
+                    step = 1
+            if fixed:
+                continue
         if is_link:
             link[base + k] = c
         else:
