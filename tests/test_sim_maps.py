@@ -197,3 +197,33 @@ def test_n_pcp_inferred_from_what_a_receiver_sees_matches_the_world():
     assert exact >= 5, (exact, lower)
     assert road.infer_n_pcp(ev0, (0.0, 0.0), []) is None          # goal on no exit lane: no task
     assert load_map("three_lane_straight").infer_n_pcp((0.0, 0.0), (0.0, 10.0), []) == 0
+
+
+@pytest.mark.parametrize("radius", [0.3, 1.6, 2.9])
+def test_the_path_lookup_grid_is_the_nearest_point_over_the_whole_bounding_box(radius):
+    """build_grid searches only the cells near the path; its grid must be what the search over
+    every cell of the path's bounding box gives: the same cells, the nearest sample's arc length
+    (the first one on a tie), for a curve that bends back on itself and a straight line."""
+    from bimacppo_sim.geometry import Path, grid_key
+
+    t = np.linspace(0.0, 1.0, 60)
+    curves = [np.c_[20.0 * np.cos(4.0 * t), 12.0 * np.sin(4.0 * t) + 3.0 * t],
+              np.c_[np.linspace(-7.3, 31.0, 40), np.full(40, 2.25)]]
+    cell = 0.5
+    for pts in curves:
+        path = Path(pts, 0.25)
+        path.build_grid(cell, radius)
+        P = path.points()
+        lo = np.floor((P.min(axis=0) - radius) / cell).astype(int)
+        hi = np.floor((P.max(axis=0) + radius) / cell).astype(int)
+        expected = {}
+        for ix in range(lo[0], hi[0] + 1):
+            cx = (ix + 0.5) * cell
+            d = np.hypot(cx - P[:, 0][None, :], ((np.arange(lo[1], hi[1] + 1) + 0.5) * cell)[:, None] - P[:, 1][None, :])
+            j = np.argmin(d, axis=1)
+            for row, iy in enumerate(range(lo[1], hi[1] + 1)):
+                if d[row, j[row]] <= radius:
+                    expected[grid_key(ix, iy)] = j[row] * path.ds
+        assert path.grid == expected
+        assert path.lookup(*P[len(P) // 2]) == pytest.approx(len(P) // 2 * path.ds, abs=cell)
+        assert path.lookup(P[0, 0] + 50.0, P[0, 1] + 50.0) is None

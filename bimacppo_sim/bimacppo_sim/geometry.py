@@ -111,12 +111,20 @@ class Path:
         pts = self.points()
         lo = np.floor((pts.min(axis=0) - radius) / cell).astype(int)
         hi = np.floor((pts.max(axis=0) + radius) / cell).astype(int)
-        gx = np.arange(lo[0], hi[0] + 1)
-        gy = np.arange(lo[1], hi[1] + 1)
-        cx, cy = np.meshgrid((gx + 0.5) * cell, (gy + 0.5) * cell, indexing="ij")
-        centres = np.column_stack([cx.ravel(), cy.ravel()])
-        keys_x = np.repeat(gx, len(gy))
-        keys_y = np.tile(gy, len(gx))
+        # The cells searched: those within w cells of a path point's cell, which holds every
+        # cell whose centre lies within radius of the path (not the whole bounding box, most of
+        # which is far from a curved path); in the bounding box's row-major order.
+        w = int(math.ceil(radius / cell)) + 1
+        shape = hi - lo + 1
+        ip = np.floor(pts / cell).astype(int) - lo
+        near = np.zeros((int(shape[0]), int(shape[1])), dtype=bool)
+        for dx in range(-w, w + 1):
+            for dy in range(-w, w + 1):
+                near[np.clip(ip[:, 0] + dx, 0, shape[0] - 1), np.clip(ip[:, 1] + dy, 0, shape[1] - 1)] = True
+        cand = np.argwhere(near)
+        keys_x = cand[:, 0] + lo[0]
+        keys_y = cand[:, 1] + lo[1]
+        centres = np.column_stack([(keys_x + 0.5) * cell, (keys_y + 0.5) * cell])
         best_d = np.full(len(centres), np.inf)
         best_s = np.zeros(len(centres))
         for start in range(0, len(pts), 256):
