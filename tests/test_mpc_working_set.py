@@ -162,7 +162,7 @@ def _basis(N, dt, link, fix):
     colptr = np.empty(n + 1, dtype=np.int64)
     zidx, zval = np.empty(n * N + 3 * N, dtype=np.int64), np.empty(n * N + 3 * N)
     iv = np.zeros((n, 3), dtype=np.int64)
-    nf = K.chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv)
+    nf = K.chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv, np.empty((2 * N, 4), dtype=np.int64))
     Z = np.zeros((n, nf))
     for c in range(nf):
         Z[zidx[colptr[c]:colptr[c + 1]], c] = zval[colptr[c]:colptr[c + 1]]
@@ -193,7 +193,7 @@ def test_the_chain_structure_is_the_linear_algebra_of_the_rows(rate):
         assert np.linalg.matrix_rank(Z) == Z.shape[1]
         r = rng.standard_normal(len(kept)) @ GW
         lamr, rq = np.full(m, np.nan), np.empty(n)
-        K.working_set_multipliers(r.copy(), N, dt, link, fix, lamr, rq)
+        K.working_set_multipliers(r.copy(), N, dt, link, fix, lamr, rq, np.empty((2 * N, 4), dtype=np.int64))
         lam_ref = np.linalg.lstsq(GW.T, r, rcond=None)[0]
         assert np.allclose(lamr[kept], lam_ref, rtol=1e-9, atol=1e-9 * np.abs(lam_ref).max(initial=1.0))
         mv = np.zeros(m, dtype=np.bool_)

@@ -859,40 +859,58 @@ def interval_columns(N, dt, iv, c0, c1, colptr, zidx, zval):
 
 
 @njit(cache=True)
-def chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv):
-    """Columns of the null-space basis in z: one per free chain. Returns their number."""
-    nf = 0
+def chain_runs(N, link, fix, runs):
+    """The chains of the working set's structure, channel by channel from position 0: runs[r] =
+    (channel, first, last, the position of its fix row or -1). Returns their number."""
+    nr = 0
     for ch in range(2):
         k = 0
         while k < N:
             e = k
             while e + 1 < N and link[ch * N + e + 1] >= 0:
                 e += 1
-            fixed = False
+            f = -1
             for j in range(k, e + 1):
                 if fix[ch * N + j] >= 0:
-                    fixed = True
-            if fixed:
-                for j in range(k, e + 1):
-                    lab[2 * j + ch] = -1
-            else:
-                for j in range(k, e + 1):
-                    lab[2 * j + ch] = nf
-                iv[nf, 0] = ch
-                iv[nf, 1] = k
-                iv[nf, 2] = e
-                nf += 1
+                    f = j
+            runs[nr, 0] = ch
+            runs[nr, 1] = k
+            runs[nr, 2] = e
+            runs[nr, 3] = f
+            nr += 1
             k = e + 1
+    return nr
+
+
+@njit(cache=True)
+def chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv, runs):
+    """Columns of the null-space basis in z: one per free chain (runs: chain_runs' buffer).
+    Returns their number."""
+    nf = 0
+    for r in range(chain_runs(N, link, fix, runs)):
+        ch = runs[r, 0]
+        k = runs[r, 1]
+        e = runs[r, 2]
+        if runs[r, 3] >= 0:
+            for j in range(k, e + 1):
+                lab[2 * j + ch] = -1
+        else:
+            for j in range(k, e + 1):
+                lab[2 * j + ch] = nf
+            iv[nf, 0] = ch
+            iv[nf, 1] = k
+            iv[nf, 2] = e
+            nf += 1
     colptr[0] = 0
     interval_columns(N, dt, iv, 0, nf, colptr, zidx, zval)
     return nf
 
 
 @njit(cache=True)
-def reduced_hessian(H, G, N, dt, link, fix, lab, colptr, zidx, zval, iv, M, Hb, R, ZtZ, A, nA, inW, w):
+def reduced_hessian(H, G, N, dt, link, fix, lab, colptr, zidx, zval, iv, runs, M, Hb, R, ZtZ, A, nA, inW, w):
     """Basis of the working set's null space, M = H Z, Hb = Z'HZ, R = sum over moving active rows
     outside W of w w' (w = G_i Z), ZtZ = Z'Z. Returns nf."""
-    nf = chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv)
+    nf = chain_basis(N, dt, link, fix, lab, colptr, zidx, zval, iv, runs)
     hz_columns(H, N, dt, iv, 0, nf, M)
     # row c1 of Hb = the sum over column c1's entries of zval * (that row of M), entry by entry
     # in the order of the entries: whole rows at a time, in contiguous memory
@@ -955,7 +973,7 @@ def _assemble_reduced(Hr, Hb, R, ZtZ, nf, rho, tau):
 def factor_reduced(Hr, Hb, R, ZtZ, Lr, Lsp, nf, dmax, cv):
     """Factor Z'(H + rho sum G_i'G_i + tau I)Z, raising rho (0, then dmax * 10^t, t < _RHO_TRIES)
     and then tau (smallest found by trials x8 and bisection) until it is positive definite.
-    cv = [rho, tau, changed]. Returns False if no shift up to dmax works."""
+    cv[:2] = [rho, tau]. Returns False if no shift up to dmax works."""
     min_pivot = _MIN_PIVOT * dmax
     rho = cv[0]
     tau = cv[1]
@@ -995,10 +1013,7 @@ def factor_reduced(Hr, Hb, R, ZtZ, Lr, Lsp, nf, dmax, cv):
             else:
                 lo = mid
         tau = hi
-        _assemble_reduced(Hr, Hb, R, ZtZ, nf, rho, tau)
         break
-    if rho != cv[0] or tau != cv[1]:
-        cv[2] = 1.0
     cv[0] = rho
     cv[1] = tau
     return True
@@ -1026,42 +1041,37 @@ def hc_product(H, G, A, nA, rho, tau, x, out):
 
 
 @njit(cache=True)
-def working_set_multipliers(r, N, dt, link, fix, lamr, rq):
-    """lamr[c] for every row c of the working set (links and fixes) with G_W' lam = r."""
+def working_set_multipliers(r, N, dt, link, fix, lamr, rq, runs):
+    """lamr[c] for every row c of the working set (links and fixes) with G_W' lam = r (runs:
+    chain_runs' buffer)."""
     for k in range(N):
         nxt = r[2 * k + 2] if k + 1 < N else 0.0
         rq[2 * k] = (r[2 * k] - nxt) / dt
         rq[2 * k + 1] = r[2 * k + 1]
-    for ch in range(2):
-        k = 0
-        while k < N:
-            e = k
-            while e + 1 < N and link[ch * N + e + 1] >= 0:
-                e += 1
-            f = -1
-            for j in range(k, e + 1):
-                if fix[ch * N + j] >= 0:
-                    f = j
-            last = e if f < 0 else f
-            # from the left end: phi_{j+1} = phi_j - rq[j]
+    for q in range(chain_runs(N, link, fix, runs)):
+        ch = runs[q, 0]
+        k = runs[q, 1]
+        e = runs[q, 2]
+        f = runs[q, 3]
+        last = e if f < 0 else f
+        # from the left end: phi_{j+1} = phi_j - rq[j]
+        phi = 0.0
+        for j in range(k, last):
+            phi = phi - rq[2 * j + ch]
+            c = link[ch * N + j + 1]
+            _, _, _, coef = row_shape(c, N, dt)
+            lamr[c] = phi / coef
+        phi_left = phi
+        if f >= 0:
             phi = 0.0
-            for j in range(k, last):
-                phi = phi - rq[2 * j + ch]
-                c = link[ch * N + j + 1]
+            for j in range(e, f, -1):
+                phi = rq[2 * j + ch] + phi
+                c = link[ch * N + j]
                 _, _, _, coef = row_shape(c, N, dt)
                 lamr[c] = phi / coef
-            phi_left = phi
-            if f >= 0:
-                phi = 0.0
-                for j in range(e, f, -1):
-                    phi = rq[2 * j + ch] + phi
-                    c = link[ch * N + j]
-                    _, _, _, coef = row_shape(c, N, dt)
-                    lamr[c] = phi / coef
-                cf = fix[ch * N + f]
-                _, _, _, coef = row_shape(cf, N, dt)
-                lamr[cf] = (rq[2 * f + ch] - phi_left + phi) / coef
-            k = e + 1
+            cf = fix[ch * N + f]
+            _, _, _, coef = row_shape(cf, N, dt)
+            lamr[cf] = (rq[2 * f + ch] - phi_left + phi) / coef
 
 
 @njit(cache=True)
@@ -1204,7 +1214,8 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
     n = g.size
     N = n // 2
     m = b.size
-    (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv) = qk
+    (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv,
+     runs) = qk
     gq = ws[0]
     s = ws[1]
     sr = ws[2]
@@ -1222,7 +1233,6 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
     pr = ws[14]       # the step since the rebuild in the basis: p = p at the rebuild + Z pr
     cv[0] = 0.0
     cv[1] = 0.0
-    cv[2] = 0.0
     for i in range(n):
         p[i] = 0.0
         gq[i] = g[i]
@@ -1235,7 +1245,7 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
             slack[c] = 0.0
             A[nA] = c
             nA += 1
-    cv[3] = nA
+    cv[2] = nA
     for i in range(2 * N):
         link[i] = -1
         fix[i] = -1
@@ -1264,9 +1274,9 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
                     fix[i] = -1
                 add_rows(W, nW, N, dt, link, fix, False)
             n0 = nW
-            nf = reduced_hessian(H, G, N, dt, link, fix, lab, colptr, zidx, zval, iv, M, Hb, R, ZtZ, A, nA, inW, tmp)
-            cv[4] = nf
-            cv[2] = 0.0
+            nf = reduced_hessian(H, G, N, dt, link, fix, lab, colptr, zidx, zval, iv, runs, M, Hb, R, ZtZ, A, nA,
+                                 inW, tmp)
+            cv[3] = nf
             if not factor_reduced(Hr, Hb, R, ZtZ, Lr, Lsp, nf, dmax, cv):
                 return 2, nW
             # the model's gradient at p under this basis' convexification (g itself at p = 0)
@@ -1356,7 +1366,7 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
             lamr[c] = la
             for i in range(n):
                 tmp[i] -= la * G[c, i]
-        working_set_multipliers(tmp, N, dt, link, fix, lamr, yv)
+        working_set_multipliers(tmp, N, dt, link, fix, lamr, yv, runs)
         worst = -1
         wval = -_EPS_LAM * gnorm
         for a in range(nW):
@@ -1367,7 +1377,7 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
         if worst < 0:
             for a in range(nW):
                 lamW[a] = lamr[W[a]]
-            cv[5] = n0
+            cv[4] = n0
             return 0, nW
         c = W[worst]
         inW[c] = False
@@ -1435,7 +1445,7 @@ def qp_null_space(H, g, G, b, W, nW, maxit, p, lamW, inW, dmax, dt, qk):
                 if not mv[c2] and row_on_interval(c2, N, dt, ch, lo, hi) != 0.0:
                     mv[c2] = True
             nf += 1
-            cv[4] = nf
+            cv[3] = nf
     if not rebuild:
         _model_gradient(G, A, nA, N, cv, M, colptr, zidx, zval, nf, pr, gq, s)
     return 1, nW
@@ -1459,7 +1469,8 @@ def converged_after_step(x0, z, xref, uprev, P, X, T, J, h, G, W, nW, qk, lam, t
     n = z.size
     N = n // 2
     dt = P[P_DT]
-    (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv) = qk
+    (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv,
+     runs) = qk
     g = ws[0]
     s = ws[1]
     sr = ws[2]
@@ -1471,8 +1482,8 @@ def converged_after_step(x0, z, xref, uprev, P, X, T, J, h, G, W, nW, qk, lam, t
     rr = ws[9]
     lam2 = ws[10]
     tmp2 = ws[11]
-    nf = int(cv[4])
-    n0 = int(cv[5])
+    nf = int(cv[3])
+    n0 = int(cv[4])
     n2 = nW - n0
     stage_trig(X, z, T)
     gradient(x0, z, xref, uprev, P, X, T, lam, g)
@@ -1502,7 +1513,7 @@ def converged_after_step(x0, z, xref, uprev, P, X, T, J, h, G, W, nW, qk, lam, t
         sr[c] = -sr[c]
     for i in range(n):
         tmp[i] = g[i]
-    _model_gradient(G, A, int(cv[3]), N, cv, M, colptr, zidx, zval, nf, sr, tmp, s)
+    _model_gradient(G, A, int(cv[2]), N, cv, M, colptr, zidx, zval, nf, sr, tmp, s)
     for i in range(n):
         tmp[i] = -tmp[i]
     for a in range(n2):
@@ -1510,7 +1521,7 @@ def converged_after_step(x0, z, xref, uprev, P, X, T, J, h, G, W, nW, qk, lam, t
         lamr[c] = lam2[a]
         for i in range(n):
             tmp[i] -= lam2[a] * G[c, i]
-    working_set_multipliers(tmp, N, dt, link, fix, lamr, yv)
+    working_set_multipliers(tmp, N, dt, link, fix, lamr, yv, runs)
     for a in range(nW):
         if lamr[W[a]] < -_EPS_LAM * gnorm:
             return False
@@ -1529,9 +1540,9 @@ def sqp_workspace(N, P):
     # in the inputs, room for every column a QP can append), M = H Z, Hb = Z'HZ, R (the released
     # active rows' w w'), ZtZ, Lr (the factor of Z'Hc Z), Hr and a spare factor (the shift search's
     # trials), 15 work vectors (ws[0]: the model gradient g + Hc p), A (the rows active at p = 0),
-    # lamr (multipliers by row), cv = [rho, tau, convexification changed, |A|, n_f, |W0|], Y2 and
+    # lamr (multipliers by row), cv = [rho, tau, |A|, n_f, |W0|], Y2 and
     # Ls2 (W2's reduced rows solved against Lr, the factor of their Gram matrix), mv (the rows
-    # that move along Z) and iv (each column's channel and interval)
+    # that move along Z), iv (each column's channel and interval) and runs (chain_runs' buffer)
     # Carved from three buffers (floats, integers, flags) rather than allocated one by one: the
     # allocations and frees of some forty arrays cost more than a Gauss-Newton step. The arrays
     # that must start at zero (or -1) are contiguous in their buffer and set in one pass.
@@ -1540,12 +1551,12 @@ def sqp_workspace(N, P):
     w = max(n, m)
     sz_s = (N + 1) * 4 * n
     sz_x = (N + 1) * 4
-    F = np.empty(6 + nn + sz_s + sz_x + nz + 8 * nn + 15 * w + m + n + nn + m * n + 2 * m + 3 * n + sz_x + 4 * N)
-    o = 6 + nn + sz_s + sz_x
+    F = np.empty(5 + nn + sz_s + sz_x + nz + 8 * nn + 15 * w + m + n + nn + m * n + 2 * m + 3 * n + sz_x + 4 * N)
+    o = 5 + nn + sz_s + sz_x
     F[:o] = 0.0
-    cv = F[0:6]
-    Ls2 = F[6:6 + nn].reshape((n, n))
-    S = F[6 + nn:6 + nn + sz_s].reshape((N + 1, 4, n))
+    cv = F[0:5]
+    Ls2 = F[5:5 + nn].reshape((n, n))
+    S = F[5 + nn:5 + nn + sz_s].reshape((N + 1, 4, n))
     lam = F[o - sz_x:o].reshape((N + 1, 4))
     zval = F[o:o + nz]
     o += nz
@@ -1577,7 +1588,7 @@ def sqp_workspace(N, P):
     o += 3 * n
     Xt = F[o:o + sz_x].reshape((N + 1, 4))
     Tc = F[o + sz_x:o + sz_x + 4 * N].reshape((N, 4))
-    I = np.empty(4 * N + 3 * n + 2 * n + 1 + nz + m + n, dtype=np.int64)
+    I = np.empty(4 * N + 3 * n + 2 * n + 1 + nz + m + n + 8 * N, dtype=np.int64)
     I[:4 * N] = -1
     I[4 * N:4 * N + 3 * n] = 0
     link = I[0:2 * N]
@@ -1590,10 +1601,12 @@ def sqp_workspace(N, P):
     zidx = I[o:o + nz]
     A = I[o + nz:o + nz + m]
     W = I[o + nz + m:o + nz + m + n]
+    runs = I[o + nz + m + n:o + nz + m + n + 8 * N].reshape((2 * N, 4))
     Bf = np.zeros(2 * m, dtype=np.bool_)
     mv = Bf[0:m]
     inW = Bf[m:2 * m]
-    qk = (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv)
+    qk = (link, fix, lab, colptr, zidx, zval, M, Hb, R, ZtZ, Lr, Hr, Lsp, ws, A, lamr, cv, Y2, Ls2, mv, iv,
+          runs)
     return (S, lam, g, H, qk, G, h, b, p, zt, W, inW, lamW, Xt, Tc)
 
 
