@@ -9,6 +9,8 @@ below are registered as soon as gymnasium is imported, so that ``gym.make(ENV_ID
 this import, through the ``.pth`` file that setup.py writes from ``_gymnasium_hook.py``.
 """
 
+import bimacppo_common  # noqa: F401  (before torch loads: idle OpenMP threads sleep; bimacppo_common says why)
+
 __version__ = "0.1.0"
 
 #: Gymnasium id -> map id of the scenario (``gym.make(id, config=..., mpc_solver=...)``).
