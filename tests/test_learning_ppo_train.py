@@ -7,6 +7,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from bimacppo_learning.ppo import PPO
 from bimacppo_learning.ppo_config import load_config
 from bimacppo_learning.rollout import make_vector_env, reset_each, reset_one
 from toy_env import ToyEnvConfig, ToyIntersectionEnv, ToyScheduler
@@ -228,3 +229,30 @@ def test_an_error_in_an_async_step_ends_the_run_with_that_error(tmp_path):
     th.join(120)
     assert not th.is_alive(), "training hung after the failed step"
     assert caught and isinstance(caught[0], ValueError) and "broadcast" in str(caught[0])
+
+
+class ThreadCountChangingEnv(ToyIntersectionEnv):
+    """The toy env that changes the process's OpenMP thread count in every step, as a numba
+    parallel call (the batched NMPC) can: torch's operators read that count."""
+
+    def step(self, action):
+        import torch
+
+        torch.set_num_threads(3)
+        return super().step(action)
+
+
+def test_the_policy_acts_on_its_configured_threads_whatever_the_env_step_left(tmp_path, monkeypatch):
+    """The trainer sets torch's acting threads before every forward and after each update, so a
+    step that changed the thread count cannot make the policy wake idle threads for tiny ops."""
+    import torch
+
+    p, t = toy_cfg(rollout_steps=16, torch_threads=1, update_threads=2)
+    tr = Trainer(ThreadCountChangingEnv, ToyScheduler(seed=0), tmp_path, p, t)
+    acting, updating = [], []
+    act, update = PPO.act, PPO.update
+    monkeypatch.setattr(PPO, "act", lambda *a, **k: (acting.append(torch.get_num_threads()), act(*a, **k))[1])
+    monkeypatch.setattr(PPO, "update", lambda *a, **k: (updating.append(torch.get_num_threads()), update(*a, **k))[1])
+    tr.train(episodes=12)
+    assert len(acting) > 16 and len(updating) >= 1
+    assert set(acting) == {1} and set(updating) == {2}

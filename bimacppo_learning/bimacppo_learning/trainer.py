@@ -258,6 +258,10 @@ class Trainer:
                 done_budget = False
                 for _ in range(T):
                     c0 = time.perf_counter()
+                    # again at every step: a numba parallel call (the batched NMPC) sets the
+                    # OpenMP thread count that torch's operators read, so without this the
+                    # policy forward would run on every core, waking idle threads for tiny ops
+                    torch.set_num_threads(self.tcfg.torch_threads)
                     obs_n = agent.normalize_obs(obs, update=True)
                     actions, logp, values = agent.act(obs_n)
                     c1 = time.perf_counter()
@@ -357,13 +361,12 @@ class Trainer:
         last_n = agent.normalize_obs(obs)
         data = buf.finish(agent.value, last_n, cfg.gamma, cfg.gae_lambda)
         t0 = time.monotonic()
-        acting_threads = torch.get_num_threads()
         torch.set_num_threads(self.tcfg.update_threads or os.cpu_count() or 1)
         try:
             stats = agent.update(data["obs"], data["actions"], data["logp"], data["advantages"],
                                  data["returns"], fit_actor=self.updates >= cfg.critic_warmup_updates)
         finally:
-            torch.set_num_threads(acting_threads)
+            torch.set_num_threads(self.tcfg.torch_threads)
         stats["update_s"] = time.monotonic() - t0
         stats["actor_lr"] = float(agent.actor_opt.param_groups[0]["lr"])
         stats["entropy_coef"] = float(agent.entropy_coef)
