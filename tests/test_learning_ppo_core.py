@@ -1,5 +1,6 @@
 """PPO core: heads and log-probs, GAE (hand-worked, with truncation), clip objective, config."""
 import dataclasses
+import io
 
 import numpy as np
 import pytest
@@ -388,3 +389,40 @@ def test_a_head_prior_fixes_one_heads_odds_in_every_state_and_leaves_the_rest():
                                 (2, [0.2, 0.2, 0.2], "sum to 1"), (0, [0.0, 0.25, 0.25, 0.25, 0.25], "positive")):
         with pytest.raises(ValueError, match=match):
             set_head_prior(agent, head, probs_)
+
+
+def test_adam_is_the_fused_kernel_with_the_per_tensor_rule_and_stays_fused_after_a_load():
+    """The optimisers are torch's fused Adam; one update moves the weights as the per-tensor Adam
+    does (to rounding), and a state saved by a per-tensor Adam loads into a fused one."""
+    cfg = PPOConfig()
+    rng = np.random.default_rng(0)
+    n = 256
+    obs = rng.standard_normal((n, 16)).astype(np.float32)
+    act = np.stack([rng.integers(0, k, n) for k in NVEC], 1)
+    lp = np.full(n, -3.5, np.float32)
+    adv = rng.standard_normal(n).astype(np.float32)
+    ret = rng.standard_normal(n).astype(np.float32)
+    fused, plain = PPO(16, NVEC, cfg, seed=1), PPO(16, NVEC, cfg, seed=1)
+    for opt in (fused.actor_opt, fused.critic_opt):
+        assert all(g["fused"] for g in opt.param_groups)
+    plain.actor_opt = torch.optim.Adam(plain.actor.parameters(), lr=cfg.actor_lr, eps=cfg.adam_eps)
+    plain.critic_opt = torch.optim.Adam(plain.critic.parameters(), lr=cfg.critic_lr, eps=cfg.adam_eps)
+    before = [p.detach().clone() for p in fused.actor.parameters()]
+    fused.update(obs, act, lp, adv, ret)
+    plain.update(obs, act, lp, adv, ret)
+    moved = max(float((p - b).abs().max()) for p, b in zip(fused.actor.parameters(), before))
+    gap = max(float((p - q).abs().max()) for p, q in zip(fused.actor.parameters(), plain.actor.parameters()))
+    assert moved > 1e-4 and gap < 1e-3 * moved
+    buf = io.BytesIO()           # as a checkpoint file: the loaded state shares no tensor with the source
+    torch.save(plain.state_dict(), buf)
+    buf.seek(0)
+    loaded = PPO(16, NVEC, cfg, seed=2)
+    loaded.load_state_dict(torch.load(buf, weights_only=True))
+    for opt, src in ((loaded.actor_opt, plain.actor_opt), (loaded.critic_opt, plain.critic_opt)):
+        assert all(g["fused"] for g in opt.param_groups)
+        assert all(torch.equal(opt.state[p]["exp_avg"], src.state[q]["exp_avg"])
+                   for p, q in zip(opt.param_groups[0]["params"], src.param_groups[0]["params"]))
+    loaded.update(obs, act, lp, adv, ret)
+    plain.update(obs, act, lp, adv, ret)
+    gap = max(float((p - q).abs().max()) for p, q in zip(loaded.actor.parameters(), plain.actor.parameters()))
+    assert gap < 1e-3 * moved

@@ -136,6 +136,16 @@ def clipped_surrogate(new_logp: torch.Tensor, old_logp: torch.Tensor, adv: torch
     return loss, clip_frac, approx_kl
 
 
+# Adam as one compiled kernel per parameter group (torch's fused CPU implementation): the same
+# update rule as the per-tensor loop, in a fraction of its operator calls; a PPO update makes 160
+# optimiser steps on networks of a few tensors each, where those calls, not the arithmetic, cost.
+FUSED_ADAM = {"fused": True, "foreach": None}
+
+
+def adam(params, lr: float, eps: float) -> torch.optim.Adam:
+    return torch.optim.Adam(params, lr=lr, eps=eps, **FUSED_ADAM)
+
+
 # PPO settings that define a trained agent (its networks, and whether its inputs are normalised):
 # a fine-tune can change every other setting, not these.
 ARCHITECTURE_KEYS = ("hidden_sizes", "activation", "obs_norm")
@@ -161,8 +171,8 @@ class PPO:
                                    c.init_gain_hidden, c.init_gain_policy)
             self.critic = build_mlp(self.obs_dim, c.hidden_sizes, 1, c.activation,
                                     c.init_gain_hidden, c.init_gain_value)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=c.actor_lr, eps=c.adam_eps)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=c.critic_lr, eps=c.adam_eps)
+        self.actor_opt = adam(self.actor.parameters(), c.actor_lr, c.adam_eps)
+        self.critic_opt = adam(self.critic.parameters(), c.critic_lr, c.adam_eps)
         self.entropy_coef = float(c.entropy_coef)   # moved by set_progress under entropy_schedule
         self.obs_rms = RunningMeanStd(self.obs_dim, c.obs_norm_eps, c.obs_clip)
         # Own generator: action sampling and minibatch shuffles stay reproducible whatever else
@@ -338,8 +348,10 @@ class PPO:
             check_state_shapes(name, net.state_dict(), d[name])
         self.actor.load_state_dict(d["actor"])
         self.critic.load_state_dict(d["critic"])
-        self.actor_opt.load_state_dict(d["actor_opt"])
-        self.critic_opt.load_state_dict(d["critic_opt"])
+        for opt, key in ((self.actor_opt, "actor_opt"), (self.critic_opt, "critic_opt")):
+            opt.load_state_dict(d[key])
+            for g in opt.param_groups:      # a checkpoint saved by another Adam implementation
+                g.update(FUSED_ADAM)
         self.obs_rms.load_state_dict(d["obs_rms"])
         self.gen.set_state(d["gen"])
 
