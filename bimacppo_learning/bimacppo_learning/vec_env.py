@@ -102,9 +102,9 @@ class BatchedVectorEnv(VectorEnv):
 def _block_worker(conn, n: int, batch_kwargs: dict) -> None:
     """One block of slots in its own process: answers (op, args) messages until 'close'.
     Exceptions travel back as ('error', text) so the trainer fails with the worker's message."""
-    import numba
-
-    numba.set_num_threads(1)      # the blocks already use the cores
+    # The block's NMPC runs on the controller's threads (fast.threads: every core by default),
+    # which sleep when idle, so one block's solve can use the core another block leaves idle.
+    # Setting numba's count here would change nothing: the controller sets it on every call.
     try:
         batch = IntersectionBatch(n, **batch_kwargs)
         conn.send(("ok", (batch.obs_dim, batch.nvec)))
