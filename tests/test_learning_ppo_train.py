@@ -256,3 +256,25 @@ def test_the_policy_acts_on_its_configured_threads_whatever_the_env_step_left(tm
     tr.train(episodes=12)
     assert len(acting) > 16 and len(updating) >= 1
     assert set(acting) == {1} and set(updating) == {2}
+
+
+def test_tensorboard_gets_every_kth_episode_and_the_history_every_episode(tmp_path):
+    """tensorboard_every = k: the per-episode and curriculum tags get the episodes k, 2k, ...;
+    history.jsonl gets them all."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    p, t = toy_cfg(rollout_steps=16, tensorboard=True, tensorboard_every=3)
+    tr = Trainer(ToyIntersectionEnv, ToyScheduler(seed=0), tmp_path, p, t)
+    tr.train(episodes=10)
+    recs = [json.loads(x) for x in (tmp_path / "history.jsonl").read_text().splitlines()]
+    assert [r["episode"] for r in recs] == list(range(1, len(recs) + 1)) and len(recs) >= 10
+    acc = EventAccumulator(str(tmp_path / "tb"))
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    curriculum = [tag for tag in tags if tag.startswith("curriculum/")]
+    assert curriculum
+    want = [e for e in range(1, len(recs) + 1) if e % 3 == 0]
+    for tag in ["episode/return", "episode/success_rate", *curriculum]:
+        assert [ev.step for ev in acc.Scalars(tag)] == want, tag
+    returns = {r["episode"]: r["return"] for r in recs}
+    assert [ev.value for ev in acc.Scalars("episode/return")] == pytest.approx([returns[e] for e in want])

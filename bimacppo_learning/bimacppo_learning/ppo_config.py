@@ -95,6 +95,7 @@ class TrainConfig:
     keep_checkpoints: int = setting(lo=1)
     success_window: int = setting(lo=1)
     tensorboard: bool
+    tensorboard_every: int = setting(lo=1)
     progress_bar: bool
     torch_threads: int = setting(lo=1)
     update_threads: int = setting(lo=0)

@@ -330,7 +330,7 @@ class Trainer:
                "success_rate": sr, "wall_s": round(elapsed, 3), "scheduler": sched}
         hist.write(json.dumps(rec) + "\n")
         hist.flush()
-        if writer is not None:
+        if writer is not None and self.episodes % self.tcfg.tensorboard_every == 0:
             e = self.episodes
             writer.add_scalar("episode/return", slot["ret"], e)
             writer.add_scalar("episode/episode_return", env_ret, e)
