@@ -130,9 +130,10 @@ def test_horizon_has_an_upper_bound():
 
 
 def test_importing_the_mpc_makes_idle_openmp_threads_passive_unless_the_user_chose():
-    """bimacppo_mpc sets OMP_WAIT_POLICY=PASSIVE before numba's OpenMP runtime loads (spinning
-    threads make concurrent training runs on shared cores several times slower), and keeps a value
-    the user set; the parallel batch solve still runs and agrees with the serial one."""
+    """Importing bimacppo_mpc sets OMP_WAIT_POLICY=PASSIVE (through bimacppo_common, which it
+    imports first) before numba's OpenMP runtime loads (spinning threads make concurrent training
+    runs on shared cores several times slower), and keeps a value the user set; the parallel
+    batch solve still runs and agrees with the serial one."""
     import os
     import subprocess
     import sys
