@@ -243,7 +243,7 @@ class ThreadCountChangingEnv(ToyIntersectionEnv):
 
 
 def test_the_policy_acts_on_its_configured_threads_whatever_the_env_step_left(tmp_path, monkeypatch):
-    """The trainer sets torch's acting threads before every forward and after each update, so a
+    """The trainer sets torch's acting threads back after every env step and each update, so a
     step that changed the thread count cannot make the policy wake idle threads for tiny ops."""
     import torch
 

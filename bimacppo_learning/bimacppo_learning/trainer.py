@@ -258,14 +258,15 @@ class Trainer:
                 done_budget = False
                 for _ in range(T):
                     c0 = time.perf_counter()
-                    # again at every step: a numba parallel call (the batched NMPC) sets the
-                    # OpenMP thread count that torch's operators read, so without this the
-                    # policy forward would run on every core, waking idle threads for tiny ops
-                    torch.set_num_threads(self.tcfg.torch_threads)
                     obs_n = agent.normalize_obs(obs, update=True)
                     actions, logp, values = agent.act(obs_n)
                     c1 = time.perf_counter()
                     nxt, rew, term, trunc, infos = venv.step(actions)
+                    # after every env step: a numba parallel call in it (the batched NMPC) sets
+                    # the OpenMP thread count torch's operators read, and the next forwards (the
+                    # policy's, the value bootstrap's) would run on every core, waking idle
+                    # threads for tiny ops
+                    torch.set_num_threads(self.tcfg.torch_threads)
                     c2 = time.perf_counter()
                     tm["policy"] += c1 - c0
                     tm["env"] += c2 - c1
