@@ -30,14 +30,17 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 EXT = ROOT / "bimacppo_learning" / "bimacppo_learning" / "config" / "env_extended.yaml"
 # name -> train-section overrides; "per-env" is the loop as it ran before batching (2 subprocess
 # envs x 1024 steps per update, every torch op on one thread); "batched" keeps 2048 samples per
-# update (16 x 128), in this process or split over 2 worker processes. All rows update on one
-# thread: on a machine shared with other jobs, extra update threads can cost more than they give.
+# update (16 x 128), in this process or split over 2 worker processes. All rows run the update's
+# operators on one thread (on a machine shared with other jobs, extra operator threads can cost
+# more than they give); the batched rows fit the critic on a second thread beside the actor
+# (train.critic_thread), "batched-serial-update" fits both on one.
 BATCHED = {"vector": "batched", "num_envs": 16, "rollout_steps": 128, "batch_workers": 1, "update_threads": 1}
 CONFIGS = {
-    "per-env": {"vector": "async", "num_envs": 2, "rollout_steps": 1024, "update_threads": 1},
+    "per-env": {"vector": "async", "num_envs": 2, "rollout_steps": 1024, "update_threads": 1, "critic_thread": False},
     "batched": BATCHED,
     "batched-2proc": {**BATCHED, "batch_workers": 2},
     "batched-uncut": BATCHED,
+    "batched-serial-update": {**BATCHED, "critic_thread": False},
 }
 # name -> overrides of the packaged mpc.yaml: "batched-uncut" is config/mpc_uncut.yaml, the solver
 # as it was before the cut and the side rule of the second start (every second start that passes

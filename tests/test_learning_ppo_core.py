@@ -426,3 +426,97 @@ def test_adam_is_the_fused_kernel_with_the_per_tensor_rule_and_stays_fused_after
     plain.update(obs, act, lp, adv, ret)
     gap = max(float((p - q).abs().max()) for p, q in zip(loaded.actor.parameters(), plain.actor.parameters()))
     assert gap < 1e-3 * moved
+
+
+def _rollout(n=300, dim=16, seed=0):
+    rng = np.random.default_rng(seed)
+    return (rng.standard_normal((n, dim)).astype(np.float32), np.stack([rng.integers(0, k, n) for k in NVEC], 1),
+            np.full(n, -3.5, np.float32), rng.standard_normal(n).astype(np.float32),
+            rng.standard_normal(n).astype(np.float32))
+
+
+def _interleaved_update(agent, obs, act, lp, adv, ret):
+    """PPO's update written the textbook way, actor and critic step by step on each minibatch:
+    the reference the epoch-wise fit must reproduce bit for bit."""
+    c = agent.cfg
+    O, A, LP = torch.as_tensor(obs), torch.as_tensor(act, dtype=torch.long), torch.as_tensor(lp)
+    ADV, RET = torch.as_tensor(adv), torch.as_tensor(ret)
+    n = O.shape[0]
+    for _ in range(c.epochs):
+        perm = torch.randperm(n, generator=agent.gen)
+        for s in range(0, n, c.minibatch_size):
+            idx = perm[s:s + c.minibatch_size]
+            if idx.numel() < 2:
+                continue
+            a = ADV[idx]
+            a = (a - a.mean()) / (a.std() + 1e-8)
+            d = agent.dist(O[idx])
+            pl, _, _ = clipped_surrogate(d.log_prob(A[idx]), LP[idx], a, c.clip_eps)
+            agent.actor_opt.zero_grad(set_to_none=True)
+            (pl - agent.entropy_coef * d.entropy().mean()).backward()
+            torch.nn.utils.clip_grad_norm_(agent.actor.parameters(), c.max_grad_norm)
+            agent.actor_opt.step()
+            vl = 0.5 * (agent.critic(O[idx]).squeeze(-1) - RET[idx]).pow(2).mean()
+            agent.critic_opt.zero_grad(set_to_none=True)
+            vl.backward()
+            torch.nn.utils.clip_grad_norm_(agent.critic.parameters(), c.max_grad_norm)
+            agent.critic_opt.step()
+
+
+def _same_state(a, b):
+    sa, sb = a.state_dict(), b.state_dict()
+    for net in ("actor", "critic"):
+        assert all(torch.equal(sa[net][k], sb[net][k]) for k in sa[net]), net
+    for opt in ("actor_opt", "critic_opt"):
+        for pid, st in sa[opt]["state"].items():
+            assert all(torch.equal(v, sb[opt]["state"][pid][k]) for k, v in st.items()), opt
+
+
+@pytest.mark.parametrize("target_kl", [None, 0.002])
+def test_the_critic_fitted_on_its_own_thread_gives_the_interleaved_update_bit_for_bit(target_kl):
+    """The update fits actor and critic epoch by epoch, the critic on a second thread when asked:
+    the weights, optimiser moments and statistics equal those of one thread, and the weights equal
+    the textbook interleaved loop's (the networks share nothing). With target_kl, both threads
+    stop after the same epoch."""
+    import threading
+
+    cfg = dataclasses.replace(PPOConfig(), minibatch_size=64, epochs=6, target_kl=target_kl)
+    data = _rollout(n=300)      # 4 full minibatches and a 44-sample tail
+    one, two, ref = (PPO(16, NVEC, cfg, seed=4) for _ in range(3))
+    threads = []
+    fit = PPO._fit_critic
+
+    def recording(self, *a):
+        threads.append(threading.get_ident())
+        return fit(self, *a)
+
+    PPO._fit_critic = recording
+    try:
+        s1 = one.update(*data, critic_thread=False)
+        assert set(threads) == {threading.get_ident()}
+        threads.clear()
+        s2 = two.update(*data, critic_thread=True)
+        assert threading.get_ident() not in threads and len(threads) == s2["epochs"]
+    finally:
+        PPO._fit_critic = fit
+    assert s1 == pytest.approx(s2, nan_ok=True, rel=0, abs=0)
+    _same_state(one, two)
+    if target_kl is None:
+        assert s2["epochs"] == 6 and s2["minibatch_steps"] == 30
+        _interleaved_update(ref, *data)
+        for net in ("actor", "critic"):
+            assert all(torch.equal(p, q) for p, q in zip(getattr(ref, net).parameters(), getattr(two, net).parameters()))
+    else:
+        assert s2["early_stop"] == 1.0 and s2["epochs"] < 6
+
+
+def test_a_critic_warm_up_on_the_critics_thread_leaves_the_actor_as_it_was():
+    cfg = dataclasses.replace(PPOConfig(), minibatch_size=64, epochs=3)
+    data = _rollout(n=256, seed=1)
+    agent, serial = PPO(16, NVEC, cfg, seed=5), PPO(16, NVEC, cfg, seed=5)
+    before = [p.detach().clone() for p in agent.actor.parameters()]
+    stats = agent.update(*data, fit_actor=False, critic_thread=True)
+    serial.update(*data, fit_actor=False, critic_thread=False)
+    assert all(torch.equal(p, b) for p, b in zip(agent.actor.parameters(), before))
+    assert stats["actor_fitted"] == 0.0 and stats["critic_grad_norm"] > 0.0
+    _same_state(agent, serial)

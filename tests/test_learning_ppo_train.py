@@ -278,3 +278,26 @@ def test_tensorboard_gets_every_kth_episode_and_the_history_every_episode(tmp_pa
         assert [ev.step for ev in acc.Scalars(tag)] == want, tag
     returns = {r["episode"]: r["return"] for r in recs}
     assert [ev.value for ev in acc.Scalars("episode/return")] == pytest.approx([returns[e] for e in want])
+
+
+@pytest.mark.parametrize("critic_thread", [True, False])
+def test_the_trainer_hands_the_critic_thread_setting_to_every_update(tmp_path, monkeypatch, critic_thread):
+    p, t = toy_cfg(rollout_steps=16, critic_thread=critic_thread)
+    seen = []
+    update = PPO.update
+    monkeypatch.setattr(PPO, "update", lambda *a, **k: (seen.append(k.get("critic_thread")), update(*a, **k))[1])
+    Trainer(ToyIntersectionEnv, ToyScheduler(seed=0), tmp_path, p, t).train(episodes=6)
+    assert seen and set(seen) == {critic_thread}
+
+
+def test_training_histories_are_the_same_with_the_critic_on_its_own_thread_or_not(tmp_path):
+    """The critic's thread changes where the update runs, not what it computes: two toy runs
+    differing only in critic_thread write the same history."""
+    runs = {}
+    for flag in (True, False):
+        p, t = toy_cfg(rollout_steps=32, critic_thread=flag)
+        d = tmp_path / str(flag)
+        Trainer(ToyIntersectionEnv, ToyScheduler(seed=0), d, p, t).train(episodes=20)
+        runs[flag] = [{k: v for k, v in json.loads(x).items() if not k.endswith("_s") and k != "time"}
+                      for x in (d / "history.jsonl").read_text().splitlines()]
+    assert len(runs[True]) >= 20 and runs[True] == runs[False]

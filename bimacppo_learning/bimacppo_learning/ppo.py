@@ -12,6 +12,7 @@ which is what the ratio in eq. (30) needs.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -212,7 +213,8 @@ class PPO:
 
     # -------------------------------------------------------------------- update
     def update(self, obs: np.ndarray, actions: np.ndarray, old_logp: np.ndarray,
-               advantages: np.ndarray, returns: np.ndarray, fit_actor: bool = True) -> dict[str, float]:
+               advantages: np.ndarray, returns: np.ndarray, fit_actor: bool = True,
+               critic_thread: bool = False) -> dict[str, float]:
         """`epochs` passes of shuffled minibatches over one flattened rollout.
 
         Actor loss = clipped surrogate - entropy coefficient * entropy (``self.entropy_coef``, the
@@ -220,7 +222,14 @@ class PPO:
         returns; each network has its own optimiser and grad-norm clip. ``fit_actor`` False fits
         the critic alone (``critic_warmup_updates``): the actor's weights and optimiser moments
         stay as they are, and its losses are still reported.
-        """
+
+        The two networks share no tensor and no loss term, so each epoch fits the actor on every
+        minibatch of the epoch's permutation and then the critic on the same minibatches (the
+        result equals any interleaving of the two). ``critic_thread`` True runs the critic's passes
+        on a second thread while this one fits the actor: torch releases the interpreter lock
+        inside its operators, so the two fits overlap on two cores, and the result is the serial
+        one bit for bit (each network's operators run in the same order on one thread either way).
+        The epochs stay in step (``target_kl`` reads the actor's KL after each)."""
         c = self.cfg
         n = obs.shape[0]
         if not (actions.shape[0] == old_logp.shape[0] == advantages.shape[0] == returns.shape[0] == n):
@@ -238,48 +247,31 @@ class PPO:
         steps = 0
         epochs_run = 0
         stop = False
-        for _ in range(c.epochs):
-            perm = torch.randperm(n, generator=self.gen)
-            epoch_kl, epoch_mbs = 0.0, 0
-            for start in range(0, n, mb):
-                idx = perm[start:start + mb]
-                if idx.numel() < 2 and n >= 2:
-                    continue  # a 1-sample tail would give a meaningless normalised advantage
-                adv = ADV[idx]
-                if c.normalize_advantages and adv.numel() > 1:
-                    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                with torch.set_grad_enabled(fit_actor):
-                    d = self.dist(O[idx])
-                    new_lp = d.log_prob(A[idx])
-                    pl, cf, kl = clipped_surrogate(new_lp, LP[idx], adv, c.clip_eps)
-                    ent = d.entropy().mean()
-                if fit_actor:
-                    actor_loss = pl - self.entropy_coef * ent
-                    self.actor_opt.zero_grad(set_to_none=True)
-                    actor_loss.backward()
-                    agn = nn.utils.clip_grad_norm_(self.actor.parameters(), c.max_grad_norm)
-                    self.actor_opt.step()
+        pool = ThreadPoolExecutor(1, thread_name_prefix="ppo-critic") if critic_thread else None
+        try:
+            for _ in range(c.epochs):
+                perm = torch.randperm(n, generator=self.gen)
+                # a 1-sample tail would give a meaningless normalised advantage
+                batches = [perm[s:s + mb] for s in range(0, n, mb) if min(mb, n - s) >= 2 or n < 2]
+                if pool is None:
+                    critic = self._fit_critic(O, RET, batches)
                 else:
-                    agn = torch.tensor(0.0)
-
-                v = self.critic(O[idx]).squeeze(-1)
-                vl = 0.5 * (v - RET[idx]).pow(2).mean()
-                self.critic_opt.zero_grad(set_to_none=True)
-                vl.backward()
-                cgn = nn.utils.clip_grad_norm_(self.critic.parameters(), c.max_grad_norm)
-                self.critic_opt.step()
-
-                for k, val in (("policy_loss", pl), ("value_loss", vl), ("entropy", ent),
-                               ("approx_kl", kl), ("clip_fraction", cf),
-                               ("actor_grad_norm", agn), ("critic_grad_norm", cgn)):
-                    sums[k] += float(val.detach())
-                steps += 1
-                epoch_kl += float(kl)
-                epoch_mbs += 1
-            epochs_run += 1
-            if c.target_kl is not None and epoch_mbs and epoch_kl / epoch_mbs > c.target_kl:
-                stop = True
-                break
+                    job = pool.submit(self._fit_critic, O, RET, batches)
+                actor = self._fit_actor(O, A, LP, ADV, batches, fit_actor)
+                if pool is not None:
+                    critic = job.result()
+                for key in ("value_loss", "critic_grad_norm"):
+                    sums[key] += critic[key]
+                for key in ("policy_loss", "entropy", "approx_kl", "clip_fraction", "actor_grad_norm"):
+                    sums[key] += actor[key]
+                steps += len(batches)
+                epochs_run += 1
+                if c.target_kl is not None and batches and actor["approx_kl"] / len(batches) > c.target_kl:
+                    stop = True
+                    break
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True)
         stats = {k: v / max(steps, 1) for k, v in sums.items()}
         with torch.no_grad():
             v_pred = self.critic(O).squeeze(-1)
@@ -291,6 +283,48 @@ class PPO:
         stats["early_stop"] = float(stop)
         stats["minibatch_steps"] = float(steps)
         return stats
+
+    def _fit_actor(self, O, A, LP, ADV, batches, fit: bool) -> dict[str, float]:
+        """One epoch of the actor over ``batches`` (index tensors); the sums of its statistics.
+        ``fit`` False only evaluates (the critic warm-up)."""
+        c = self.cfg
+        out = {"policy_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0, "clip_fraction": 0.0, "actor_grad_norm": 0.0}
+        for idx in batches:
+            adv = ADV[idx]
+            if c.normalize_advantages and adv.numel() > 1:
+                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            with torch.set_grad_enabled(fit):
+                d = self.dist(O[idx])
+                new_lp = d.log_prob(A[idx])
+                pl, cf, kl = clipped_surrogate(new_lp, LP[idx], adv, c.clip_eps)
+                ent = d.entropy().mean()
+            if fit:
+                actor_loss = pl - self.entropy_coef * ent
+                self.actor_opt.zero_grad(set_to_none=True)
+                actor_loss.backward()
+                agn = float(nn.utils.clip_grad_norm_(self.actor.parameters(), c.max_grad_norm))
+                self.actor_opt.step()
+            else:
+                agn = 0.0
+            for key, val in (("policy_loss", pl), ("entropy", ent), ("approx_kl", kl), ("clip_fraction", cf)):
+                out[key] += float(val.detach())
+            out["actor_grad_norm"] += agn
+        return out
+
+    def _fit_critic(self, O, RET, batches) -> dict[str, float]:
+        """One epoch of the critic over ``batches``; the sums of its statistics. Runs on any thread:
+        it touches only the critic, its optimiser and read-only inputs."""
+        c = self.cfg
+        out = {"value_loss": 0.0, "critic_grad_norm": 0.0}
+        for idx in batches:
+            v = self.critic(O[idx]).squeeze(-1)
+            vl = 0.5 * (v - RET[idx]).pow(2).mean()
+            self.critic_opt.zero_grad(set_to_none=True)
+            vl.backward()
+            out["critic_grad_norm"] += float(nn.utils.clip_grad_norm_(self.critic.parameters(), c.max_grad_norm))
+            self.critic_opt.step()
+            out["value_loss"] += float(vl.detach())
+        return out
 
     def adopt_config(self, config: PPOConfig) -> None:
         """Train on under ``config`` from now on (a fine-tune's own PPO settings).

@@ -99,6 +99,7 @@ class TrainConfig:
     progress_bar: bool
     torch_threads: int = setting(lo=1)
     update_threads: int = setting(lo=0)
+    critic_thread: bool
     seed: int = setting(lo=0)
 
     @property

@@ -365,7 +365,8 @@ class Trainer:
         torch.set_num_threads(self.tcfg.update_threads or os.cpu_count() or 1)
         try:
             stats = agent.update(data["obs"], data["actions"], data["logp"], data["advantages"],
-                                 data["returns"], fit_actor=self.updates >= cfg.critic_warmup_updates)
+                                 data["returns"], fit_actor=self.updates >= cfg.critic_warmup_updates,
+                                 critic_thread=self.tcfg.critic_thread)
         finally:
             torch.set_num_threads(self.tcfg.torch_threads)
         stats["update_s"] = time.monotonic() - t0
