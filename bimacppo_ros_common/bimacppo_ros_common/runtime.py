@@ -19,7 +19,8 @@ from typing import Callable, List, Optional, Sequence
 import rclpy
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
                               NameValidationException)
-from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.executors import (ConditionReachedException, Executor, ExternalShutdownException,
+                              ShutdownException, SingleThreadedExecutor, TimeoutException)
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
@@ -35,8 +36,10 @@ try:
     SetupException = (*ParameterException, NameValidationException, _rclpy_impl.RCLError)
 except (ImportError, AttributeError):  # pragma: no cover - other rclpy layouts
     SetupException = (*ParameterException, NameValidationException)
-DRAIN_ROUNDS = 50
-"""spin_once(0) calls after a stop request, so messages already delivered get handled."""
+DRAIN_TIMEOUT_S = 10.0
+"""After a stop request a node handles every callback already ready (messages delivered before
+the stop, a recorder's backlog on a loaded machine) until none is, for at most this long: a
+source that keeps publishing faster than the node handles it cannot hold the stop up for ever."""
 
 
 class StopFlag:
@@ -136,11 +139,43 @@ def spin(executor: Executor, stop: StopFlag, done: Optional[Callable[[], bool]] 
     return bool(done and done())
 
 
-def drain(executor: Executor, rounds: int = DRAIN_ROUNDS) -> None:
-    for _ in range(rounds):
-        if not rclpy.ok():
-            return
-        executor.spin_once(timeout_sec=0.0)
+def _never() -> bool:
+    return False
+
+
+def drain(executor: Executor, timeout_s: float = DRAIN_TIMEOUT_S) -> bool:
+    """Handle the callbacks that are ready until none is; True once none is, False if
+    ``timeout_s`` (wall seconds) ran out first or the context shut down.
+
+    A fixed number of ``spin_once`` calls is not enough: each handles one callback, and a
+    recorder that lags its graph by a few hundred messages when it is stopped would lose the
+    rest, although DDS had delivered them."""
+    import time
+
+    t_end = time.monotonic() + timeout_s
+    handled = True      # since the last zero-timeout wait ended
+    while rclpy.ok():
+        if time.monotonic() > t_end:
+            return False
+        try:
+            # the arguments spin_once passes, so both use the executor's one ready-callback iterator
+            handler, _, _ = executor.wait_for_ready_callbacks(0.0, None, _never)
+        except TimeoutException:
+            # a zero-timeout wait ends after handing out what one wait found: idle only if a
+            # whole wait found nothing
+            if not handled:
+                return True
+            handled = False
+            continue
+        except ConditionReachedException:
+            return True
+        except (ShutdownException, ExternalShutdownException):
+            return False
+        handled = True
+        handler()
+        if handler.exception() is not None:
+            raise handler.exception()
+    return False
 
 
 def close_nodes(nodes: List) -> None:
@@ -214,7 +249,9 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
         ex = SingleThreadedExecutor()
         ex.add_node(node)
         spin(ex, stop, done=lambda: bool(getattr(node, done_attr, False)))
-        drain(ex)
+        if not drain(ex) and rclpy.ok():
+            node.get_logger().warning(f"stopping with callbacks still ready after {DRAIN_TIMEOUT_S:g} s of "
+                                      "handling them: a source publishes faster than this node handles it")
         return int(getattr(node, "exit_code", 0))
     finally:
         if node is not None:
