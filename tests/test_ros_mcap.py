@@ -129,6 +129,34 @@ def test_recorder_clean_stop_writes_complete_indexed_file(node, tmp_path):
     assert goals == [(10.0, -3.5)]  # the latched goal, published before recording started
 
 
+def test_a_recorder_stopped_right_after_a_burst_writes_every_message(node, tmp_path):
+    """600 messages published at once and SIGINT straight after: the recorder is still working
+    through its backlog when the stop comes, and its drain must write all of them (under the
+    subscription depth, queue_depth, they are all delivered)."""
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Int32
+
+    path = tmp_path / "burst.mcap"
+    pub = node.create_publisher(Int32, "/burst", QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                                                            reliability=ReliabilityPolicy.RELIABLE))
+    rec = _start("bimacppo_bag.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1")
+    t_end = time.monotonic() + PROC_TIMEOUT
+    while pub.get_subscription_count() < 1 and time.monotonic() < t_end:
+        _spin(node, 0.01)
+    _spin(node, 0.5)   # the match settles on both sides
+    for k in range(600):
+        pub.publish(Int32(data=k))
+    rc, out = _stop(rec)
+    node.destroy_publisher(pub)
+    assert rc == 0, out
+    report = mcap_io.ReadReport()
+    from mcap_ros2.decoder import DecoderFactory
+    dec = DecoderFactory()
+    got = [dec.decoder_for("cdr", sch)(m.data).data for sch, _, m in mcap_io.iter_mcap(path, report, topics=["/burst"])]
+    assert report.complete, report.error
+    assert got == list(range(600)), (len(got), out[-2000:])
+
+
 def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
     path = tmp_path / "src.mcap"
     rec, odom, goal = _record(node, path, 80)
