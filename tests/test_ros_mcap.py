@@ -130,22 +130,29 @@ def test_recorder_clean_stop_writes_complete_indexed_file(node, tmp_path):
 
 
 def test_a_recorder_stopped_right_after_a_burst_writes_every_message(node, tmp_path):
-    """600 messages published at once and SIGINT straight after: the recorder is still working
-    through its backlog when the stop comes, and its drain must write all of them (under the
-    subscription depth, queue_depth, they are all delivered)."""
+    """1,500 messages published at once, acknowledged by the recorder's reader (so DDS has
+    delivered every one), and SIGINT straight after: the recorder's executor is usually still
+    working through them when the stop comes, and its drain must write all of them (they fit the
+    subscription depth, queue_depth)."""
+    from rclpy.duration import Duration
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import Int32
 
+    n = 1500
     path = tmp_path / "burst.mcap"
-    pub = node.create_publisher(Int32, "/burst", QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+    pub = node.create_publisher(Int32, "/burst", QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=n,
                                                             reliability=ReliabilityPolicy.RELIABLE))
-    rec = _start("bimacppo_bag.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1")
+    before = _sub_gids(node, "/burst")
+    rec = _start("bimacppo_bag.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
+                 "-p", "queue_depth:=2000")
+    _wait_new_subscriber(node, "/burst", before)
     t_end = time.monotonic() + PROC_TIMEOUT
     while pub.get_subscription_count() < 1 and time.monotonic() < t_end:
         _spin(node, 0.01)
     _spin(node, 0.5)   # the match settles on both sides
-    for k in range(600):
+    for k in range(n):
         pub.publish(Int32(data=k))
+    assert pub.wait_for_all_acked(Duration(seconds=PROC_TIMEOUT))
     rc, out = _stop(rec)
     node.destroy_publisher(pub)
     assert rc == 0, out
@@ -154,7 +161,7 @@ def test_a_recorder_stopped_right_after_a_burst_writes_every_message(node, tmp_p
     dec = DecoderFactory()
     got = [dec.decoder_for("cdr", sch)(m.data).data for sch, _, m in mcap_io.iter_mcap(path, report, topics=["/burst"])]
     assert report.complete, report.error
-    assert got == list(range(600)), (len(got), out[-2000:])
+    assert got == list(range(n)), (len(got), out[-2000:])
 
 
 def test_player_republishes_recorded_bytes_and_survives_damage(node, tmp_path):
