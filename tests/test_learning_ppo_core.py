@@ -473,7 +473,7 @@ def _same_state(a, b):
 
 
 @pytest.mark.parametrize("target_kl", [None, 0.002])
-def test_the_critic_fitted_on_its_own_thread_gives_the_interleaved_update_bit_for_bit(target_kl):
+def test_the_critic_fitted_on_its_own_thread_gives_the_interleaved_update_bit_for_bit(target_kl, monkeypatch):
     """The update fits actor and critic epoch by epoch, the critic on a second thread when asked:
     the weights, optimiser moments and statistics equal those of one thread, and the weights equal
     the textbook interleaved loop's (the networks share nothing). With target_kl, both threads
@@ -490,15 +490,13 @@ def test_the_critic_fitted_on_its_own_thread_gives_the_interleaved_update_bit_fo
         threads.append(threading.get_ident())
         return fit(self, *a)
 
-    PPO._fit_critic = recording
-    try:
-        s1 = one.update(*data, critic_thread=False)
-        assert set(threads) == {threading.get_ident()}
-        threads.clear()
-        s2 = two.update(*data, critic_thread=True)
-        assert threading.get_ident() not in threads and len(threads) == s2["epochs"]
-    finally:
-        PPO._fit_critic = fit
+    monkeypatch.setattr(PPO, "_fit_critic", recording)
+    s1 = one.update(*data, critic_thread=False)
+    assert set(threads) == {threading.get_ident()}
+    threads.clear()
+    s2 = two.update(*data, critic_thread=True)
+    assert threading.get_ident() not in threads and len(threads) == s2["epochs"]
+    monkeypatch.undo()
     assert s1 == pytest.approx(s2, nan_ok=True, rel=0, abs=0)
     _same_state(one, two)
     if target_kl is None:

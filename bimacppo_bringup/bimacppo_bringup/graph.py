@@ -135,8 +135,7 @@ def run(args, values) -> int:
         finished = runtime.spin(ex, stop, done=lambda: cur.done,
                                 timeout_s=args.timeout if args.timeout > 0 else None)
         if not runtime.drain(ex):
-            print(f"stopping with callbacks still ready after {runtime.DRAIN_TIMEOUT_S:g} s of handling them",
-                  file=sys.stderr)
+            print(runtime.DRAIN_CUT_WARNING, file=sys.stderr)
         wall = time.monotonic() - t0
         counts = Counter(r[3] for r in cur.results)
         n = max(len(cur.results), 1)

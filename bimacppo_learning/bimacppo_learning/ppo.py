@@ -253,13 +253,9 @@ class PPO:
                 perm = torch.randperm(n, generator=self.gen)
                 # a 1-sample tail would give a meaningless normalised advantage
                 batches = [perm[s:s + mb] for s in range(0, n, mb) if min(mb, n - s) >= 2 or n < 2]
-                if pool is None:
-                    critic = self._fit_critic(O, RET, batches)
-                else:
-                    job = pool.submit(self._fit_critic, O, RET, batches)
+                job = pool.submit(self._fit_critic, O, RET, batches) if pool is not None else None
                 actor = self._fit_actor(O, A, LP, ADV, batches, fit_actor)
-                if pool is not None:
-                    critic = job.result()
+                critic = job.result() if job is not None else self._fit_critic(O, RET, batches)
                 for key in ("value_loss", "critic_grad_norm"):
                     sums[key] += critic[key]
                 for key in ("policy_loss", "entropy", "approx_kl", "clip_fraction", "actor_grad_norm"):

@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from typing import Callable, List, Optional, Sequence
 
 import rclpy
@@ -40,6 +41,8 @@ DRAIN_TIMEOUT_S = 10.0
 """After a stop request a node handles every callback already ready (messages delivered before
 the stop, a recorder's backlog on a loaded machine) until none is, for at most this long: a
 source that keeps publishing faster than the node handles it cannot hold the stop up for ever."""
+DRAIN_CUT_WARNING = (f"stopping with callbacks still ready after {DRAIN_TIMEOUT_S:g} s of handling them: "
+                     "a source publishes faster than this node handles it")
 
 
 class StopFlag:
@@ -127,8 +130,6 @@ def guarded(node, what: str, fn: Callable, errors: Optional[dict] = None) -> Cal
 def spin(executor: Executor, stop: StopFlag, done: Optional[Callable[[], bool]] = None,
          timeout_s: Optional[float] = None) -> bool:
     """Spin until stopped, ``done()`` or timeout (wall seconds); True if ``done()`` ended it."""
-    import time
-
     t_end = None if timeout_s is None else time.monotonic() + timeout_s
     while rclpy.ok() and not stop.is_set():
         if done is not None and done():
@@ -150,10 +151,8 @@ def drain(executor: Executor, timeout_s: float = DRAIN_TIMEOUT_S) -> bool:
     A fixed number of ``spin_once`` calls is not enough: each handles one callback, and a
     recorder that lags its graph by a few hundred messages when it is stopped would lose the
     rest, although DDS had delivered them."""
-    import time
-
     t_end = time.monotonic() + timeout_s
-    handled = True      # since the last zero-timeout wait ended
+    handled = False     # a callback since the last zero-timeout wait ended
     while rclpy.ok():
         if time.monotonic() > t_end:
             return False
@@ -250,8 +249,7 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
         ex.add_node(node)
         spin(ex, stop, done=lambda: bool(getattr(node, done_attr, False)))
         if not drain(ex) and rclpy.ok():
-            node.get_logger().warning(f"stopping with callbacks still ready after {DRAIN_TIMEOUT_S:g} s of "
-                                      "handling them: a source publishes faster than this node handles it")
+            node.get_logger().warning(DRAIN_CUT_WARNING)
         return int(getattr(node, "exit_code", 0))
     finally:
         if node is not None:
