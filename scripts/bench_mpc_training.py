@@ -11,9 +11,14 @@ the policy explores. This script records them and replays them, so the two can b
    episode starts (where the warm start is forgotten).
 2. Per problem: each slot's problems solved in order with ``solve()`` on one core, each call
    timed: mean, median, p90, p99, max; SQP iterations; the share of problems (and of the time)
-   over 1 ms and in the second start.
+   over 1 ms and in the second start; and the same split by reference: a problem whose
+   reference is new (a decision's first tick, or an episode's first problem) against one that
+   tracks the reference of the slot's previous problem (the decision's later ticks, where the
+   shifted warm start already lies near the optimum).
 3. Throughput: the recorded batches replayed through ``solve_batch`` on 1 and on 2 threads,
-   ``--repeats`` pairs, median problems/s and the ratio.
+   ``--repeats`` pairs, median problems/s and the ratio; and the ratio on the batches of a
+   decision's first tick (mostly new references) apart from the rest, whose solves are short
+   enough that handing half of them to a second thread costs a visible share.
 
 Prints figures; asserts nothing.
 
@@ -98,7 +103,37 @@ def per_problem(cfg, per_slot):
     return np.array(times), np.array(iters), np.array(starts)
 
 
-def throughput(cfg, batches, threads: int) -> float:
+def new_reference(per_slot) -> np.ndarray:
+    """Per problem, in ``per_problem``'s order: True where the slot's reference differs from the
+    one of its previous problem, or the problem starts an episode (no warm start to shift)."""
+    out = []
+    for problems in per_slot:
+        prev = None
+        for _, xr, _, new in problems:
+            out.append(new or prev is None or not np.array_equal(xr, prev))
+            prev = xr
+    return np.array(out, dtype=bool)
+
+
+def split_rows(t: np.ndarray, it: np.ndarray, st: np.ndarray, new: np.ndarray) -> list[tuple[str, str]]:
+    """Rows of the new- / same-reference split: share of problems and of the time, mean and median
+    solve, mean SQP iterations, second starts."""
+    rows = []
+    total = t.sum()
+    for name, m in (("new reference", new), ("same reference", ~new)):
+        if not m.any():
+            rows.append((f"{name}: no problems", "-"))
+            continue
+        us = t[m] * 1e6
+        rows.append((f"{name}: share of problems / of time; mean / median [us]; SQP iterations; second starts",
+                     f"{100 * m.mean():.1f} % / {100 * t[m].sum() / total:.1f} %; {us.mean():,.0f} / "
+                     f"{np.median(us):,.0f}; {it[m].mean():.2f}; {100 * (st[m] == 2).mean():.1f} %"))
+    return rows
+
+
+def throughput(cfg, batches, threads: int) -> tuple[float, np.ndarray]:
+    """Problems/s of the recorded batches replayed through solve_batch on ``threads`` threads,
+    and each batch's wall time [s]."""
     from bimacppo_mpc import make_controller
 
     ctrl = make_controller(cfg, "fast")
@@ -106,12 +141,14 @@ def throughput(cfg, batches, threads: int) -> float:
     X0, Xr, Up, _ = batches[0]
     ctrl.solve_batch(X0, Xr, Up)              # excluded: allocation of the slots, thread start
     ctrl.reset()
-    t0 = time.perf_counter()
-    for X0, Xr, Up, fresh in batches:
+    walls = np.empty(len(batches))
+    for k, (X0, Xr, Up, fresh) in enumerate(batches):
         if fresh:
             ctrl.reset(slots=fresh)
+        t0 = time.perf_counter()
         ctrl.solve_batch(X0, Xr, Up)
-    return len(batches) * len(batches[0][0]) / (time.perf_counter() - t0)
+        walls[k] = time.perf_counter() - t0
+    return len(batches) * len(batches[0][0]) / walls.sum(), walls
 
 
 def main(argv=None) -> int:
@@ -131,9 +168,19 @@ def main(argv=None) -> int:
     us = t * 1e6
     slow = t > 1e-3
     second = st == 2
-    pairs = [(throughput(cfg, batches, 1), throughput(cfg, batches, 2)) for _ in range(a.repeats)]
+    runs = [(throughput(cfg, batches, 1), throughput(cfg, batches, 2)) for _ in range(a.repeats)]
+    pairs = [(r1[0], r2[0]) for r1, r2 in runs]
     one, two = np.median([p[0] for p in pairs]), np.median([p[1] for p in pairs])
     ratios = np.array([p[1] / p[0] for p in pairs])
+    # batches where most slots start a new reference (a decision's first tick) against the rest:
+    # the two threads' speed-up on each, from the summed wall times over the repeats
+    new = new_reference(per_slot).reshape(a.batch, len(batches))
+    first = new.mean(axis=0) > 0.5
+    w1 = np.sum([r1[1] for r1, _ in runs], axis=0)
+    w2 = np.sum([r2[1] for _, r2 in runs], axis=0)
+    by_kind = " / ".join(f"{w1[m].sum() / w2[m].sum():.2f}x ({1e6 * w1[m].mean() / a.repeats:,.0f} -> "
+                         f"{1e6 * w2[m].mean() / a.repeats:,.0f} us)" if m.any() else "-"
+                         for m in (first, ~first))
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
     print(f"\nNMPC on training problems: {len(t):,} problems ({a.batch} episodes x {a.decisions} decisions, "
@@ -147,8 +194,10 @@ def main(argv=None) -> int:
          f"{100 * slow.mean():.1f} % / {100 * t[slow].sum() / t.sum():.1f} %"),
         ("second start: share of problems / of time",
          f"{100 * second.mean():.1f} % / {100 * t[second].sum() / t.sum():.1f} %"),
+        *split_rows(t, it, st, new_reference(per_slot)),
         (f"solve_batch B={a.batch}: 1 / 2 threads [problems/s] (median of {a.repeats})", f"{one:,.0f} / {two:,.0f}"),
         ("ratio 2 threads / 1 thread: median (min-max)", f"{np.median(ratios):.2f}x ({ratios.min():.2f}-{ratios.max():.2f})"),
+        ("ratio 2 / 1 threads on batches of mostly new references / the rest (mean wall per batch)", by_kind),
         ("peak RSS [MiB]", f"{rss:,.0f}"),
     ]
     w = max(len(r[0]) for r in rows)

@@ -10,10 +10,17 @@ figures; asserts nothing. Numbers on a shared machine are noisy: repeat with --r
 ``--concurrent N`` starts N copies of each configuration at once, as a sweep does on one machine:
 the row shows one copy's figures (the median copy) and the aggregate episodes/s of all N.
 ``--omp-wait active`` runs the children with OMP_WAIT_POLICY=ACTIVE (OpenMP threads spin after
-each parallel NMPC call) instead of the package's default, passive (bimacppo_mpc/__init__.py).
+each parallel NMPC call) instead of the package's default, passive (bimacppo_common/__init__.py).
+``--omp-spin N`` lets them spin for N iterations and then sleep (OMP_WAIT_POLICY=ACTIVE with
+GOMP_SPINCOUNT=N): long enough to bridge the gap between a decision's NMPC calls, short enough to
+sleep through the PPO update. ``--mpc-threads K`` runs every configuration's NMPC batch on K
+threads (fast.threads; 0 = one per core, the packaged default), e.g. one per copy when two copies
+share two cores.
 
     .venv/bin/python scripts/bench_train.py --episodes 500
     .venv/bin/python scripts/bench_train.py --episodes 600 --only batched --concurrent 2 --omp-wait active
+    .venv/bin/python scripts/bench_train.py --episodes 500 --only batched --omp-spin 50000
+    .venv/bin/python scripts/bench_train.py --episodes 500 --only batched --concurrent 2 --mpc-threads 1
     .venv/bin/python scripts/bench_train.py --episodes 5000 --only batched     # a full paper-budget run
 """
 from __future__ import annotations
@@ -73,16 +80,36 @@ print("RESULT " + json.dumps({"wall": wall, "episodes": res.episodes, "decisions
 """
 
 
-def run_many(name: str, episodes: int, seed: int, env_config: str, copies: int = 1,
-             omp_wait: str | None = None) -> list[dict]:
-    """``copies`` children of configuration ``name`` started together; one result each."""
+def child_env(omp_wait: str | None = None, omp_spin: int | None = None) -> dict:
+    """The children's environment: progress bars off, and the OpenMP wait policy asked for
+    (``omp_spin``: spin that many iterations, then sleep)."""
     env = {**os.environ, "TQDM_DISABLE": "1"}
     if omp_wait is not None:
         env["OMP_WAIT_POLICY"] = omp_wait.upper()
+    if omp_spin is not None:
+        env["OMP_WAIT_POLICY"] = "ACTIVE"
+        env["GOMP_SPINCOUNT"] = str(omp_spin)
+    return env
+
+
+def mpc_overrides(name: str, mpc_threads: int | None = None) -> dict:
+    """Configuration ``name``'s overrides of the packaged mpc.yaml, with ``fast.threads`` set
+    where ``mpc_threads`` is given."""
+    over = json.loads(json.dumps(MPC.get(name, {})))
+    if mpc_threads is not None:
+        over.setdefault("fast", {})["threads"] = mpc_threads
+    return over
+
+
+def run_many(name: str, episodes: int, seed: int, env_config: str, copies: int = 1,
+             omp_wait: str | None = None, omp_spin: int | None = None,
+             mpc_threads: int | None = None) -> list[dict]:
+    """``copies`` children of configuration ``name`` started together; one result each."""
+    env = child_env(omp_wait, omp_spin)
     with tempfile.TemporaryDirectory(prefix=f"bench-{name}-") as tmp:
         procs = []
         for c in range(copies):
-            arg = json.dumps({"train": CONFIGS[name], "mpc": MPC.get(name, {}), "episodes": episodes, "seed": seed,
+            arg = json.dumps({"train": CONFIGS[name], "mpc": mpc_overrides(name, mpc_threads), "episodes": episodes, "seed": seed,
                               "env_config": env_config, "run_dir": os.path.join(tmp, str(c))})
             procs.append(subprocess.Popen([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE,
                                           stderr=subprocess.PIPE, text=True, env=env))
@@ -106,16 +133,28 @@ def main() -> int:
     ap.add_argument("--concurrent", type=int, default=1, help="copies of each configuration run at once (a sweep on one machine)")
     ap.add_argument("--omp-wait", choices=("active", "passive"), default=None,
                     help="OMP_WAIT_POLICY of the children (default: the package's, passive)")
+    ap.add_argument("--omp-spin", type=int, default=None, metavar="N",
+                    help="idle OpenMP threads spin N iterations, then sleep (OMP_WAIT_POLICY=ACTIVE, GOMP_SPINCOUNT=N)")
+    ap.add_argument("--mpc-threads", type=int, default=None, metavar="K",
+                    help="threads of every configuration's NMPC batch (fast.threads; 0 = one per core)")
     args = ap.parse_args()
     if not 1 <= args.concurrent <= 64:
         ap.error(f"--concurrent must be in 1..64, got {args.concurrent}")
+    if args.omp_spin is not None:
+        if args.omp_spin < 0:
+            ap.error(f"--omp-spin must be >= 0, got {args.omp_spin}")
+        if args.omp_wait == "passive":
+            ap.error("--omp-spin sets OMP_WAIT_POLICY=ACTIVE; it cannot go with --omp-wait passive")
+    if args.mpc_threads is not None and args.mpc_threads < 0:
+        ap.error(f"--mpc-threads must be >= 0, got {args.mpc_threads}")
     names = args.only or list(CONFIGS)
     rows = []
     for name in names:
         runs = []
         for k in range(args.repeat):
             print(f"{name}: run {k + 1}/{args.repeat}, {args.episodes} episodes ...", file=sys.stderr, flush=True)
-            copies = run_many(name, args.episodes, args.seed, args.env_config, args.concurrent, args.omp_wait)
+            copies = run_many(name, args.episodes, args.seed, args.env_config, args.concurrent, args.omp_wait,
+                              args.omp_spin, args.mpc_threads)
             one = sorted(copies, key=lambda r: r["wall"])[len(copies) // 2]
             one["aggregate"] = sum(r["episodes"] / r["wall"] for r in copies)
             runs.append(one)
@@ -123,10 +162,12 @@ def main() -> int:
         mid["eps_all"] = [r["episodes"] / r["wall"] for r in runs]
         rows.append((name, mid))
     base = rows[0][1]
+    wait = ("active, GOMP_SPINCOUNT " + str(args.omp_spin) if args.omp_spin is not None
+            else args.omp_wait or os.environ.get("OMP_WAIT_POLICY") or "passive (package default)")
+    threads = "" if args.mpc_threads is None else f", NMPC threads {args.mpc_threads}"
     print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
           f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}; "
-          f"{args.concurrent} cop{'y' if args.concurrent == 1 else 'ies'} at once, OMP_WAIT_POLICY "
-          f"{(args.omp_wait or os.environ.get('OMP_WAIT_POLICY') or 'passive (package default)')}\n")
+          f"{args.concurrent} cop{'y' if args.concurrent == 1 else 'ies'} at once, OMP_WAIT_POLICY {wait}{threads}\n")
     print("| path | train config (and NMPC overrides) | episodes/s | all copies: episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC s (solve_batch time, summed over processes) | "
           "NMPC per problem: µs of solve_batch wall time / SQP iterations / second starts | "
           "policy s | update s | other s | peak RSS main / largest worker (MiB) | success, last 200 |")
@@ -140,7 +181,8 @@ def main() -> int:
         n = tm.get("mpc_problems", 0)
         per = (f"{1e6 * tm['mpc_cpu'] / n:.0f} / {tm['mpc_iterations'] / n:.2f} / {100 * tm['mpc_second_starts'] / n:.1f} %"
                if n else "-")
-        conf = json.dumps(CONFIGS[name]) + (f" NMPC {json.dumps(MPC[name])}" if name in MPC else "")
+        over = mpc_overrides(name, args.mpc_threads)
+        conf = json.dumps(CONFIGS[name]) + (f" NMPC {json.dumps(over)}" if over else "")
         print(f"| {name} | {conf} | {eps:.1f}{spread} | {r['aggregate']:.1f} | {r['ticks'] / r['wall']:.0f} | "
               f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x | {tm['env']:.1f} | "
               f"{mpc} | {per} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | "

@@ -33,5 +33,30 @@ def test_main_prints_every_figure(capsys):
     n = int(re.search(r"([\d,]+) problems", out).group(1).replace(",", ""))
     assert n >= 4
     for label in ("mean / median / p90 / p99 / max", "SQP iterations", "over 1 ms", "second start",
-                  "1 / 2 threads", "ratio 2 threads", "peak RSS"):
+                  "new reference: share", "same reference: share", "1 / 2 threads", "ratio 2 threads",
+                  "mostly new references / the rest", "peak RSS"):
         assert label in out, label
+
+
+def test_a_problem_has_a_new_reference_at_an_episode_start_or_where_the_slots_reference_changed():
+    mod = _module()
+    a, b = np.array([1.0, 2.0, 3.0, 4.0]), np.array([1.0, 2.0, 3.0, 5.0])
+    x, u = np.zeros(4), np.zeros(2)
+    per_slot = [[(x, a, u, True), (x, a, u, False), (x, b, u, False), (x, b, u, True)],
+                [(x, b, u, False), (x, b, u, False), (x, a, u, False), (x, a, u, False)]]
+    assert mod.new_reference(per_slot).tolist() == [True, False, True, True, True, False, True, False]
+
+
+def test_the_reference_split_puts_each_problems_time_on_its_side():
+    mod = _module()
+    t = np.array([4e-4, 1e-4, 1e-4, 2e-4])
+    it = np.array([6, 2, 2, 4])
+    st = np.array([2, 1, 1, 1])
+    new = np.array([True, False, False, True])
+    (n_name, n_val), (s_name, s_val) = mod.split_rows(t, it, st, new)
+    assert n_name.startswith("new reference") and s_name.startswith("same reference")
+    # new: half the problems, 6/8 of the time, mean 300 us, median 300, 5 iterations, one of two second starts
+    assert n_val == "50.0 % / 75.0 %; 300 / 300; 5.00; 50.0 %"
+    assert s_val == "50.0 % / 25.0 %; 100 / 100; 2.00; 0.0 %"
+    rows = mod.split_rows(t, it, st, np.zeros(4, bool))
+    assert rows[0] == ("new reference: no problems", "-")
