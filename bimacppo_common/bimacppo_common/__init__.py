@@ -8,7 +8,8 @@ the cores then spin against each other's work (docs/results.md, "Two runs on the
 The runtime reads the variable once, when it loads at ``import torch`` (or at numba's first
 parallel call when torch is absent). So every package that can load it imports this package
 first (bimacppo_mpc, bimacppo_planner, bimacppo_learning); a program that imports torch before
-any of them keeps OpenMP's default.
+any of them keeps OpenMP's default. A policy set in the environment is kept: a run that has the
+machine to itself gains from a bounded spin (docs/ppo.md, "Idle OpenMP threads").
 """
 import os
 
