@@ -221,7 +221,9 @@ def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_
             node.destroy_subscription(s)
     assert ok, (f"no {'episode result' if not results else 'planner return'}; process output:\n"
                 + "\n---\n".join(outs))
-    assert all(p.returncode == 0 for p in procs), outs
+    assert all(p.returncode == 0 for p in procs), (
+        "exit codes planner / world / controller: " + ", ".join(str(p.returncode) for p in procs)
+        + "; process output:\n" + "\n---\n".join(outs))
     res = results[0]
     assert res.outcome == ref_outcome
     assert res.steps == len(ref_traj) - 1
