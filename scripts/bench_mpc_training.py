@@ -174,8 +174,8 @@ def main(argv=None) -> int:
     ratios = np.array([p[1] / p[0] for p in pairs])
     # batches where most slots start a new reference (a decision's first tick) against the rest:
     # the two threads' speed-up on each, from the summed wall times over the repeats
-    new = new_reference(per_slot).reshape(a.batch, len(batches))
-    first = new.mean(axis=0) > 0.5
+    new = new_reference(per_slot)
+    first = new.reshape(a.batch, len(batches)).mean(axis=0) > 0.5
     w1 = np.sum([r1[1] for r1, _ in runs], axis=0)
     w2 = np.sum([r2[1] for _, r2 in runs], axis=0)
     by_kind = " / ".join(f"{w1[m].sum() / w2[m].sum():.2f}x ({1e6 * w1[m].mean() / a.repeats:,.0f} -> "
@@ -194,7 +194,7 @@ def main(argv=None) -> int:
          f"{100 * slow.mean():.1f} % / {100 * t[slow].sum() / t.sum():.1f} %"),
         ("second start: share of problems / of time",
          f"{100 * second.mean():.1f} % / {100 * t[second].sum() / t.sum():.1f} %"),
-        *split_rows(t, it, st, new_reference(per_slot)),
+        *split_rows(t, it, st, new),
         (f"solve_batch B={a.batch}: 1 / 2 threads [problems/s] (median of {a.repeats})", f"{one:,.0f} / {two:,.0f}"),
         ("ratio 2 threads / 1 thread: median (min-max)", f"{np.median(ratios):.2f}x ({ratios.min():.2f}-{ratios.max():.2f})"),
         ("ratio 2 / 1 threads on batches of mostly new references / the rest (mean wall per batch)", by_kind),

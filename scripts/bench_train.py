@@ -26,6 +26,7 @@ share two cores.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import pathlib
@@ -95,7 +96,7 @@ def child_env(omp_wait: str | None = None, omp_spin: int | None = None) -> dict:
 def mpc_overrides(name: str, mpc_threads: int | None = None) -> dict:
     """Configuration ``name``'s overrides of the packaged mpc.yaml, with ``fast.threads`` set
     where ``mpc_threads`` is given."""
-    over = json.loads(json.dumps(MPC.get(name, {})))
+    over = copy.deepcopy(MPC.get(name, {}))
     if mpc_threads is not None:
         over.setdefault("fast", {})["threads"] = mpc_threads
     return over

@@ -20,8 +20,8 @@ from typing import Callable, List, Optional, Sequence
 import rclpy
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
                               NameValidationException)
-from rclpy.executors import (ConditionReachedException, Executor, ExternalShutdownException,
-                              ShutdownException, SingleThreadedExecutor, TimeoutException)
+from rclpy.executors import (Executor, ExternalShutdownException, ShutdownException, SingleThreadedExecutor,
+                              TimeoutException)
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
@@ -145,8 +145,9 @@ def _never() -> bool:
 
 
 def drain(executor: Executor, timeout_s: float = DRAIN_TIMEOUT_S) -> bool:
-    """Handle the callbacks that are ready until none is; True once none is, False if
-    ``timeout_s`` (wall seconds) ran out first or the context shut down.
+    """Handle the callbacks that are ready until none is; False if ``timeout_s`` (wall seconds)
+    ran out first, with callbacks still ready (the caller warns), True otherwise, also when the
+    context shut down: then nothing more can be handled.
 
     A fixed number of ``spin_once`` calls is not enough: each handles one callback, and a
     recorder that lags its graph by a few hundred messages when it is stopped would lose the
@@ -166,15 +167,13 @@ def drain(executor: Executor, timeout_s: float = DRAIN_TIMEOUT_S) -> bool:
                 return True
             handled = False
             continue
-        except ConditionReachedException:
-            return True
         except (ShutdownException, ExternalShutdownException):
-            return False
+            return True
         handled = True
         handler()
         if handler.exception() is not None:
             raise handler.exception()
-    return False
+    return True
 
 
 def close_nodes(nodes: List) -> None:
@@ -248,7 +247,7 @@ def run_single(make_node: Callable[[List[str]], object], argv=None,
         ex = SingleThreadedExecutor()
         ex.add_node(node)
         spin(ex, stop, done=lambda: bool(getattr(node, done_attr, False)))
-        if not drain(ex) and rclpy.ok():
+        if not drain(ex):
             node.get_logger().warning(DRAIN_CUT_WARNING)
         return int(getattr(node, "exit_code", 0))
     finally:
