@@ -7,6 +7,14 @@ the table prints episodes/s, world ticks/s, decisions/s, the time split (env ste
 forward, PPO update, bookkeeping), peak memory, and each row's ratio to the first row. Prints
 figures; asserts nothing. Numbers on a shared machine are noisy: repeat with --repeat.
 
+``--ref REF`` adds a row (first in the table, so the ratios are to it) that runs commit REF's own
+``bimacppo-train`` exactly as a user ran it then: the commit's tree is exported from this
+repository's git history to a temporary folder, its packages go first on PYTHONPATH, and its
+console script trains with its packaged defaults (TensorBoard and all), ``--no-progress`` and the
+commit's own copy of the env config (found by the file name of ``--env-config``). One untimed
+episode first fills that tree's numba cache, as the installed packages' is. ``--ref HEAD`` runs
+today's CLI the same way. Such a row has no time split (the CLI prints none).
+
 ``--concurrent N`` starts N copies of each configuration at once, as a sweep does on one machine:
 the row shows one copy's figures (the median copy) and the aggregate episodes/s of all N.
 ``--omp-wait active`` runs the children with OMP_WAIT_POLICY=ACTIVE (OpenMP threads spin after
@@ -22,6 +30,7 @@ share two cores.
     .venv/bin/python scripts/bench_train.py --episodes 500 --only batched --omp-spin 50000
     .venv/bin/python scripts/bench_train.py --episodes 500 --only batched --concurrent 2 --mpc-threads 1
     .venv/bin/python scripts/bench_train.py --episodes 5000 --only batched     # a full paper-budget run
+    .venv/bin/python scripts/bench_train.py --episodes 500 --ref 34d3ac2 --ref HEAD --only batched
 """
 from __future__ import annotations
 
@@ -30,8 +39,10 @@ import copy
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
+import tarfile
 import tempfile
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -80,6 +91,99 @@ print("RESULT " + json.dumps({"wall": wall, "episodes": res.episodes, "decisions
                              "rss_main_mib": self_kib / 1024, "rss_worker_mib": kids_kib / 1024}))
 """
 
+# a commit's own trainer CLI: imports happen before the clock starts, as in CHILD
+REF_CHILD = r"""
+import importlib, json, resource, sys, time
+args = json.loads(sys.argv[1])
+module, func = args["entry"].split(":")
+main = getattr(importlib.import_module(module), func)
+t0 = time.perf_counter()
+rc = main(args["argv"])
+wall = time.perf_counter() - t0
+if rc:
+    sys.exit(f"the trainer exited with {rc}")
+recs = [json.loads(l) for l in open(args["history"])]
+print("RESULT " + json.dumps({"wall": wall, "episodes": len(recs), "decisions": recs[-1]["env_steps"] if recs else 0,
+                             "ticks": sum(r["ticks"] for r in recs) if all("ticks" in r for r in recs) else None,
+                             "timing": None, "success": sum(r["outcome"] == "success" for r in recs[-200:]) / max(1, len(recs[-200:])),
+                             "rss_main_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                             "rss_worker_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
+"""
+TRAIN_SCRIPT = re.compile(r"[\"']bimacppo-train\s*=\s*([\w.]+:\w+)")
+
+
+class RefError(Exception):
+    """A --ref that cannot be run (not a commit, no trainer CLI, no such env config)."""
+
+
+def export_ref(ref: str, dest: pathlib.Path, root: pathlib.Path = ROOT) -> str:
+    """Write commit ``ref``'s tree into ``dest`` (from git history: the working tree is not
+    touched); returns the commit's short hash."""
+    rev = subprocess.run(["git", "-C", str(root), "rev-parse", "--verify", "--short", f"{ref}^{{commit}}"],
+                         capture_output=True, text=True)
+    if rev.returncode != 0:
+        raise RefError(f"--ref {ref}: not a commit of {root}")
+    with tempfile.TemporaryFile() as tar:
+        subprocess.run(["git", "-C", str(root), "archive", "--format=tar", rev.stdout.strip()], stdout=tar, check=True)
+        tar.seek(0)
+        with tarfile.open(fileobj=tar) as tf:
+            tf.extractall(dest, filter="data")
+    return rev.stdout.strip()
+
+
+def ref_layout(tree: pathlib.Path, env_config: str) -> tuple[list[str], str, str]:
+    """An exported tree's package folders (top-level ``D`` holding the package ``D/D``), its
+    ``bimacppo-train`` entry point (module:function, from its setup.py files) and its own copy
+    of the env config named like ``env_config``."""
+    paths = sorted(str(d) for d in tree.iterdir() if (d / d.name / "__init__.py").is_file())
+    entry = None
+    for setup in sorted(tree.glob("*/setup.py")):
+        m = TRAIN_SCRIPT.search(setup.read_text())
+        if m:
+            entry = m.group(1)
+            break
+    if entry is None:
+        raise RefError(f"{tree.name}: no package declares the bimacppo-train console script")
+    name = pathlib.Path(env_config).name
+    found = sorted(tree.glob(f"*/*/config/{name}"))
+    if not found:
+        raise RefError(f"{tree.name}: has no config/{name} (the env config the other rows use)")
+    return paths, entry, str(found[0])
+
+
+def run_ref(ref: str, episodes: int, seed: int, env_config: str, copies: int = 1,
+            omp_wait: str | None = None, omp_spin: int | None = None, root: pathlib.Path = ROOT) -> list[dict]:
+    """``copies`` runs of commit ``ref``'s own trainer CLI started together; one result each."""
+    with tempfile.TemporaryDirectory(prefix="bench-ref-") as tmp:
+        tree = pathlib.Path(tmp) / "tree"
+        commit = export_ref(ref, tree, root)
+        paths, entry, cfg = ref_layout(tree, env_config)
+        env = child_env(omp_wait, omp_spin)
+        env["PYTHONPATH"] = os.pathsep.join(paths + [p for p in [os.environ.get("PYTHONPATH")] if p])
+
+        def start(run_dir: str, n: int) -> subprocess.Popen:
+            arg = json.dumps({"entry": entry, "history": os.path.join(run_dir, "history.jsonl"),
+                              "argv": ["--episodes", str(n), "--seed", str(seed), "--env-config", cfg,
+                                       "--run-dir", run_dir, "--no-progress"]})
+            return subprocess.Popen([sys.executable, "-c", REF_CHILD, arg], stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True, env=env, cwd=tmp)
+
+        collect(f"{ref} (warm-up)", [start(os.path.join(tmp, "warm"), 1)])
+        results = collect(ref, [start(os.path.join(tmp, str(c)), episodes) for c in range(copies)])
+    return [dict(r, commit=commit) for r in results]
+
+
+def collect(name: str, procs: list) -> list[dict]:
+    """Wait for the children; the RESULT line of each, or exit naming the failed one."""
+    outs = [(p, *p.communicate()) for p in procs]
+    results = []
+    for p, stdout, stderr in outs:
+        line = next((l for l in stdout.splitlines() if l.startswith("RESULT ")), None)
+        if p.returncode != 0 or line is None:
+            raise SystemExit(f"bench_train: {name} failed (exit {p.returncode}): {stderr.strip()[-1500:]}")
+        results.append(json.loads(line[len("RESULT "):]))
+    return results
+
 
 def child_env(omp_wait: str | None = None, omp_spin: int | None = None) -> dict:
     """The children's environment: progress bars off, and the OpenMP wait policy asked for
@@ -114,14 +218,7 @@ def run_many(name: str, episodes: int, seed: int, env_config: str, copies: int =
                               "env_config": env_config, "run_dir": os.path.join(tmp, str(c))})
             procs.append(subprocess.Popen([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE,
                                           stderr=subprocess.PIPE, text=True, env=env))
-        outs = [(p, *p.communicate()) for p in procs]
-    results = []
-    for p, stdout, stderr in outs:
-        line = next((l for l in stdout.splitlines() if l.startswith("RESULT ")), None)
-        if p.returncode != 0 or line is None:
-            raise SystemExit(f"bench_train: {name} failed (exit {p.returncode}): {stderr.strip()[-1500:]}")
-        results.append(json.loads(line[len("RESULT "):]))
-    return results
+        return collect(name, procs)
 
 
 def main() -> int:
@@ -138,6 +235,8 @@ def main() -> int:
                     help="idle OpenMP threads spin N iterations, then sleep (OMP_WAIT_POLICY=ACTIVE, GOMP_SPINCOUNT=N)")
     ap.add_argument("--mpc-threads", type=int, default=None, metavar="K",
                     help="threads of every configuration's NMPC batch (fast.threads; 0 = one per core)")
+    ap.add_argument("--ref", action="append", default=[], metavar="REF",
+                    help="also run commit REF's own bimacppo-train with its defaults (first rows; with --ref the configurations run only where --only names them)")
     args = ap.parse_args()
     if not 1 <= args.concurrent <= 64:
         ap.error(f"--concurrent must be in 1..64, got {args.concurrent}")
@@ -148,21 +247,28 @@ def main() -> int:
             ap.error("--omp-spin sets OMP_WAIT_POLICY=ACTIVE; it cannot go with --omp-wait passive")
     if args.mpc_threads is not None and args.mpc_threads < 0:
         ap.error(f"--mpc-threads must be >= 0, got {args.mpc_threads}")
-    names = args.only or list(CONFIGS)
+    names = [("ref", r) for r in args.ref] + [("config", n) for n in (args.only or ([] if args.ref else list(CONFIGS)))]
     rows = []
-    for name in names:
+    for kind, name in names:
         runs = []
         for k in range(args.repeat):
             print(f"{name}: run {k + 1}/{args.repeat}, {args.episodes} episodes ...", file=sys.stderr, flush=True)
-            copies = run_many(name, args.episodes, args.seed, args.env_config, args.concurrent, args.omp_wait,
-                              args.omp_spin, args.mpc_threads)
+            if kind == "ref":
+                try:
+                    copies = run_ref(name, args.episodes, args.seed, args.env_config, args.concurrent,
+                                     args.omp_wait, args.omp_spin)
+                except RefError as exc:
+                    ap.error(str(exc))
+            else:
+                copies = run_many(name, args.episodes, args.seed, args.env_config, args.concurrent, args.omp_wait,
+                                  args.omp_spin, args.mpc_threads)
             one = sorted(copies, key=lambda r: r["wall"])[len(copies) // 2]
             one["aggregate"] = sum(r["episodes"] / r["wall"] for r in copies)
             runs.append(one)
         mid = sorted(runs, key=lambda r: r["wall"])[len(runs) // 2]
         mid["eps_all"] = [r["episodes"] / r["wall"] for r in runs]
-        rows.append((name, mid))
-    base = rows[0][1]
+        rows.append((kind, name, mid))
+    base = rows[0][2]
     wait = ("active, GOMP_SPINCOUNT " + str(args.omp_spin) if args.omp_spin is not None
             else args.omp_wait or os.environ.get("OMP_WAIT_POLICY") or "passive (package default)")
     threads = "" if args.mpc_threads is None else f", NMPC threads {args.mpc_threads}"
@@ -173,22 +279,36 @@ def main() -> int:
           "NMPC per problem: µs of solve_batch wall time / SQP iterations / second starts | "
           "policy s | update s | other s | peak RSS main / largest worker (MiB) | success, last 200 |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name, r in rows:
-        tm = r["timing"]
+    for kind, name, r in rows:
+        print(table_row(kind, name, r, base, args.mpc_threads))
+    return 0
+
+
+def table_row(kind: str, name: str, r: dict, base: dict, mpc_threads: int | None = None) -> str:
+    """One markdown row; a --ref row (``kind`` "ref") has no time split, and no ticks where its
+    history does not record them."""
+    tm = r["timing"]
+    eps = r["episodes"] / r["wall"]
+    spread = f" ({min(r['eps_all']):.1f}-{max(r['eps_all']):.1f})" if len(r["eps_all"]) > 1 else ""
+    ticks = f"{r['ticks'] / r['wall']:.0f}" if r["ticks"] is not None else "-"
+    if tm is None:
+        split = "| - | - | - | - | - | -"
+    else:
         other = tm["total"] - tm["env"] - tm["policy"] - tm["update"]
-        eps = r["episodes"] / r["wall"]
-        spread = f" ({min(r['eps_all']):.1f}-{max(r['eps_all']):.1f})" if len(r["eps_all"]) > 1 else ""
         mpc = f"{tm['mpc_cpu']:.1f}" if "mpc_cpu" in tm else "-"
         n = tm.get("mpc_problems", 0)
         per = (f"{1e6 * tm['mpc_cpu'] / n:.0f} / {tm['mpc_iterations'] / n:.2f} / {100 * tm['mpc_second_starts'] / n:.1f} %"
                if n else "-")
-        over = mpc_overrides(name, args.mpc_threads)
-        conf = json.dumps(CONFIGS[name]) + (f" NMPC {json.dumps(over)}" if over else "")
-        print(f"| {name} | {conf} | {eps:.1f}{spread} | {r['aggregate']:.1f} | {r['ticks'] / r['wall']:.0f} | "
-              f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x | {tm['env']:.1f} | "
-              f"{mpc} | {per} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f} | "
-              f"{r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | {100 * r['success']:.0f}% |")
-    return 0
+        split = f"| {tm['env']:.1f} | {mpc} | {per} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f}"
+    if kind == "ref":
+        at = name if r.get("commit", name).startswith(name) else f"{name} = {r['commit']}"
+        label, conf = f"bimacppo-train at {at}", "the commit's own CLI and packaged defaults"
+    else:
+        over = mpc_overrides(name, mpc_threads)
+        label, conf = name, json.dumps(CONFIGS[name]) + (f" NMPC {json.dumps(over)}" if over else "")
+    return (f"| {label} | {conf} | {eps:.1f}{spread} | {r['aggregate']:.1f} | {ticks} | "
+            f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x {split} | "
+            f"{r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | {100 * r['success']:.0f}% |")
 
 
 if __name__ == "__main__":

@@ -2,6 +2,8 @@
 import subprocess
 import sys
 
+import pytest
+
 from conftest import REPO
 
 
@@ -45,3 +47,83 @@ def test_bad_spin_and_thread_options_are_one_usage_error():
         bad = subprocess.run([sys.executable, str(REPO / "scripts/bench_train.py"), *argv],
                              capture_output=True, text=True, timeout=60)
         assert bad.returncode == 2 and text in bad.stderr, (argv, bad.stderr)
+
+
+FAKE_CLI = '''
+import json, pathlib, sys
+
+
+def train_main(argv):
+    """A stand-in trainer: records the arguments it got, writes one history line per episode."""
+    a = dict(zip(argv[::2], argv[1::2]))
+    run = pathlib.Path(a["--run-dir"])
+    run.mkdir(parents=True)
+    assert "--no-progress" in argv and pathlib.Path(a["--env-config"]).read_text() == "who: the commit's own\\n"
+    n = int(a["--episodes"])
+    with open(run / "history.jsonl", "w") as f:
+        for e in range(n):
+            f.write(json.dumps({"episode": e + 1, "env_steps": 7 * (e + 1), "outcome": "success" if e % 2 else "timeout"}) + "\\n")
+    print(json.dumps({"module": __file__}), file=sys.stderr)
+    return 0
+'''
+
+
+def _repo_with_trainer(tmp_path, cli=FAKE_CLI, setup_line="'bimacppo-train = oldpkg.cli:train_main'"):
+    """A git repository with one commit whose package declares a bimacppo-train console script."""
+    repo = tmp_path / "repo"
+    (repo / "oldpkg" / "oldpkg" / "config").mkdir(parents=True)
+    (repo / "oldpkg" / "oldpkg" / "__init__.py").write_text("")
+    (repo / "oldpkg" / "oldpkg" / "cli.py").write_text(cli)
+    (repo / "oldpkg" / "oldpkg" / "config" / "env_extended.yaml").write_text("who: the commit's own\n")
+    (repo / "oldpkg" / "setup.py").write_text(f"entry_points = {{'console_scripts': [{setup_line}]}}\n")
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-qm", "old trainer"], check=True)
+    (repo / "oldpkg" / "oldpkg" / "cli.py").write_text("raise SystemExit('the working tree, not the commit')\n")
+    return repo
+
+
+def test_a_ref_row_runs_the_commits_own_trainer_from_its_exported_tree(tmp_path):
+    from conftest import load_script
+
+    mod = load_script("bench_train")
+    repo = _repo_with_trainer(tmp_path)
+    # the working tree's edit after the commit is not what runs; the commit's CLI and config are
+    res = mod.run_ref("HEAD", 6, 3, "/elsewhere/env_extended.yaml", copies=2, root=repo)
+    assert len(res) == 2
+    for r in res:
+        assert r["episodes"] == 6 and r["decisions"] == 42 and r["ticks"] is None and r["timing"] is None
+        assert r["success"] == 0.5 and r["wall"] > 0.0
+    head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    assert all(r["commit"] == head for r in res)
+    r = {**res[0], "aggregate": 2.0, "eps_all": [1.0]}
+    row = mod.table_row("ref", "HEAD", r, r)
+    cells = [c.strip() for c in row.strip().strip("|").split("|")]
+    # a symbolic ref is shown with the commit it resolved to; a hash is shown once
+    assert cells[0] == f"bimacppo-train at HEAD = {head}" and cells[4] == "-" and cells[6] == "1.00x"
+    assert len(cells) == 15 and cells[-1] == "50%"
+    assert mod.table_row("ref", head[:5], r, r).startswith(f"| bimacppo-train at {head[:5]} |")
+
+
+def test_a_ref_that_cannot_run_is_named(tmp_path):
+    from conftest import load_script
+
+    mod = load_script("bench_train")
+    repo = _repo_with_trainer(tmp_path, setup_line="'bimacppo-evaluate = oldpkg.cli:train_main'")
+    with pytest.raises(mod.RefError, match="--ref no-such-ref: not a commit"):
+        mod.export_ref("no-such-ref", tmp_path / "x", repo)
+    tree = tmp_path / "tree"
+    mod.export_ref("HEAD", tree, repo)
+    with pytest.raises(mod.RefError, match="no package declares the bimacppo-train console script"):
+        mod.ref_layout(tree, "env_extended.yaml")
+    (tree / "oldpkg" / "setup.py").write_text("x = ['bimacppo-train = oldpkg.cli:train_main']\n")
+    with pytest.raises(mod.RefError, match="has no config/env_other.yaml"):
+        mod.ref_layout(tree, "a/b/env_other.yaml")
+    paths, entry, cfg = mod.ref_layout(tree, "a/b/env_extended.yaml")
+    assert paths == [str(tree / "oldpkg")] and entry == "oldpkg.cli:train_main"
+    assert cfg == str(tree / "oldpkg" / "oldpkg" / "config" / "env_extended.yaml")
+    bad = subprocess.run([sys.executable, str(REPO / "scripts/bench_train.py"), "--ref", "no-such-ref-xyz"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--ref no-such-ref-xyz: not a commit" in bad.stderr, bad.stderr
