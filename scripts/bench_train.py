@@ -83,12 +83,7 @@ mpc = MPCConfig.load().replace(**args["mpc"])
 res = Trainer(make_env("dual_lane_4way", env_cfg, "fast", mpc_config=mpc), sched, args["run_dir"], pcfg, tcfg).train(args["episodes"])
 wall = time.perf_counter() - t0
 recs = [json.loads(l) for l in open(res.history_path)]
-ticks = sum(r["ticks"] for r in recs)
-self_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-kids_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-print("RESULT " + json.dumps({"wall": wall, "episodes": res.episodes, "decisions": res.env_steps, "ticks": ticks,
-                             "timing": res.timing, "success": sum(r["outcome"] == "success" for r in recs[-200:]) / max(1, len(recs[-200:])),
-                             "rss_main_mib": self_kib / 1024, "rss_worker_mib": kids_kib / 1024}))
+episodes, decisions, timing = res.episodes, res.env_steps, res.timing
 """
 
 # a commit's own trainer CLI: imports happen before the clock starts, as in CHILD
@@ -103,9 +98,14 @@ wall = time.perf_counter() - t0
 if rc:
     sys.exit(f"the trainer exited with {rc}")
 recs = [json.loads(l) for l in open(args["history"])]
-print("RESULT " + json.dumps({"wall": wall, "episodes": len(recs), "decisions": recs[-1]["env_steps"] if recs else 0,
+episodes, decisions, timing = len(recs), recs[-1]["env_steps"] if recs else 0, None
+"""
+# both children end here: the RESULT line from the run's history (ticks only where every record has them)
+RESULT = r"""
+last = recs[-200:]
+print("RESULT " + json.dumps({"wall": wall, "episodes": episodes, "decisions": decisions,
                              "ticks": sum(r["ticks"] for r in recs) if all("ticks" in r for r in recs) else None,
-                             "timing": None, "success": sum(r["outcome"] == "success" for r in recs[-200:]) / max(1, len(recs[-200:])),
+                             "timing": timing, "success": sum(r["outcome"] == "success" for r in last) / max(1, len(last)),
                              "rss_main_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                              "rss_worker_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
 """
@@ -165,7 +165,7 @@ def run_ref(ref: str, episodes: int, seed: int, env_config: str, copies: int = 1
             arg = json.dumps({"entry": entry, "history": os.path.join(run_dir, "history.jsonl"),
                               "argv": ["--episodes", str(n), "--seed", str(seed), "--env-config", cfg,
                                        "--run-dir", run_dir, "--no-progress"]})
-            return subprocess.Popen([sys.executable, "-c", REF_CHILD, arg], stdout=subprocess.PIPE,
+            return subprocess.Popen([sys.executable, "-c", REF_CHILD + RESULT, arg], stdout=subprocess.PIPE,
                                     stderr=subprocess.PIPE, text=True, env=env, cwd=tmp)
 
         collect(f"{ref} (warm-up)", [start(os.path.join(tmp, "warm"), 1)])
@@ -216,7 +216,7 @@ def run_many(name: str, episodes: int, seed: int, env_config: str, copies: int =
         for c in range(copies):
             arg = json.dumps({"train": CONFIGS[name], "mpc": mpc_overrides(name, mpc_threads), "episodes": episodes, "seed": seed,
                               "env_config": env_config, "run_dir": os.path.join(tmp, str(c))})
-            procs.append(subprocess.Popen([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE,
+            procs.append(subprocess.Popen([sys.executable, "-c", CHILD + RESULT, arg], stdout=subprocess.PIPE,
                                           stderr=subprocess.PIPE, text=True, env=env))
         return collect(name, procs)
 

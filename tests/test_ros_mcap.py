@@ -39,9 +39,9 @@ def _spin(node, seconds):
         rclpy.spin_once(node, timeout_sec=0.01)
 
 
-def _start(module, *args):
+def _start(module, *args, stdout=subprocess.PIPE):
     return subprocess.Popen([sys.executable, "-m", module, *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=stdout, stderr=subprocess.STDOUT, text=True)
 
 
 def _stop(proc, sig=signal.SIGINT):
@@ -236,9 +236,8 @@ def test_topic_offered_with_two_types_records_the_documented_one(node, tmp_path)
     log_path = tmp_path / "recorder.log"
     warning = "recording the documented trajectory_msgs/msg/JointTrajectory"
     with open(log_path, "w") as log:
-        rec = subprocess.Popen([sys.executable, "-m", "bimacppo_bag.recorder", str(path), "--ros-args",
-                                "-p", "discovery_period_s:=0.1", "-p", f"topics:=['{I.TOPIC_COMMAND}']"],
-                               stdout=log, stderr=subprocess.STDOUT, text=True)
+        rec = _start("bimacppo_bag.recorder", str(path), "--ros-args", "-p", "discovery_period_s:=0.1",
+                     "-p", f"topics:=['{I.TOPIC_COMMAND}']", stdout=log)
     _wait_new_subscriber(node, I.TOPIC_COMMAND, before)
     t_end = time.monotonic() + PROC_TIMEOUT
     while warning not in log_path.read_text() and rec.poll() is None and time.monotonic() < t_end:
