@@ -213,6 +213,12 @@ def test_lockstep_processes_match_in_process_run(node, policy_file, policy_file_
                             "-p", f"scenario.task:={scenario.task}", "-p", f"scenario.seed:={scenario.seed}",
                             "-p", f"scenario.slow_svs:={2 if which == 'overtaking' else 0}"))
         _await_publisher(node, subs[2]), _await_publisher(node, subs[1]), _await_publisher(node, subs[0])
+        # This side's match does not mean the world's writers have matched this observer (each side
+        # discovers the other on its own; on a loaded machine seconds apart), and a volatile writer
+        # drops what it sent before. The world re-sends tick 0 until the controller answers, so a
+        # received tick-0 state and SV list show both writers reach the observer before it steps.
+        assert _collect(node, lambda: bool(odoms) and bool(objects), DISCOVERY_TIMEOUT), \
+            f"the world's tick 0 did not reach the observer within {DISCOVERY_TIMEOUT} s"
         procs.append(_start("-m", "bimacppo_mpc.ros.controller_node"))
         ok = _collect(node, lambda: bool(results) and bool(returns), EPISODE_TIMEOUT)
     finally:
