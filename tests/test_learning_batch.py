@@ -136,6 +136,9 @@ def test_worker_processes_give_the_in_process_trajectories_and_report_worker_err
         assert s1["problems"] % 3 == 0 and 60 * 3 <= s2["problems"] <= s1["problems"] <= 60 * 3 * EXT.action.decision_every
         for st in (s1, s2):
             assert st["iterations"] >= st["problems"] > st["second_starts"] >= 0 and st["seconds"] > 0.0
+            # CPU time is counted too (every thread of the solve); a solve keeps a core busy, so it is
+            # no less than a fraction of the wall time it took
+            assert st["cpu_seconds"] > 0.2 * st["seconds"]
         with pytest.raises(RuntimeError, match="batched env worker: ValueError: unknown reset option"):
             reset_one(two, 2, 1, {"bogus": 1})
     finally:

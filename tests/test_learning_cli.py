@@ -698,3 +698,22 @@ def test_a_fine_tune_can_start_its_lane_change_head_from_a_keep_prior(trained, t
     assert train_main(["--episodes", "2", "--fine-tune-lane-prior", "0.9", "--run-dir", str(tmp_path / "bad")]) == 2
     assert "needs --init-policy" in _one_error_line(capsys.readouterr().err, "bimacppo-train")
     assert not (tmp_path / "bad").exists()
+
+
+def test_train_prints_its_cpu_time_split_like_its_wall_time(tmp_path, capsys):
+    import re
+
+    cfg = tmp_path / "ppo.yaml"
+    cfg.write_text(SMALL.replace("num_envs: 1", "num_envs: 2").replace("vector: sync", "vector: batched")
+                   .replace("rollout_steps: 128", "rollout_steps: 32").replace("tensorboard: true", "tensorboard: false"))
+    rc = train_main(["--episodes", "3", "--seed", "1", "--run-dir", str(tmp_path / "run"), "--ppo-config", str(cfg),
+                     "--no-progress"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    m = re.search(r"^CPU: ([\d.]+) s = env ([\d.]+) \(NMPC ([\d.]+)\) \+ policy ([\d.]+) \+ PPO update ([\d.]+) \+ "
+                  r"bookkeeping (-?[\d.]+) \(this process, every thread\)$", out, re.M)
+    assert m, out
+    total, env, nmpc, policy, update, other = map(float, m.groups())
+    # the NMPC runs inside env stepping, and the loop's CPU is the sum of its parts (to the print's rounding)
+    assert 0.0 < nmpc <= env + 0.1 and policy >= 0.0 and update >= 0.0
+    assert total == pytest.approx(env + policy + update + other, abs=0.25) and other >= -0.1

@@ -9,7 +9,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from bimacppo_common.conventions import TASKS
 from bimacppo_curriculum import make_scheduler
@@ -367,8 +367,18 @@ def train_main(argv=None) -> int:
     other = tm["total"] - tm["env"] - tm["policy"] - tm["update"]
     print(f"time: {tm['total']:.1f} s = env {tm['env']:.1f} + policy {tm['policy']:.1f} + "
           f"PPO update {tm['update']:.1f} + bookkeeping {other:.1f}")
+    print(cpu_line(tm))
     print(f"policy: {run_dir / 'policy.pt'}   history: {res.history_path}   checkpoint: {res.last_checkpoint}")
     return 0
+
+
+def cpu_line(tm: Mapping[str, float]) -> str:
+    """The call's CPU seconds split like its time: this process, every thread, so what the work
+    costs the machine, which wall time on several cores hides (env worker processes not included)."""
+    other = tm["total_cpu"] - tm["env_cpu"] - tm["policy_cpu"] - tm["update_cpu"]
+    nmpc = f" (NMPC {tm['mpc_cpu_seconds']:.1f})" if "mpc_cpu_seconds" in tm else ""
+    return (f"CPU: {tm['total_cpu']:.1f} s = env {tm['env_cpu']:.1f}{nmpc} + policy {tm['policy_cpu']:.1f} + "
+            f"PPO update {tm['update_cpu']:.1f} + bookkeeping {other:.1f} (this process, every thread)")
 
 
 def world_config_dict(world_cfg) -> dict:

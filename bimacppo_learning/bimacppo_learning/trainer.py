@@ -49,8 +49,10 @@ class TrainResult:
     run_dir: pathlib.Path
     history_path: pathlib.Path
     last_checkpoint: pathlib.Path | None
-    timing: dict                 # seconds of this call in env / policy / update / total; batched: mpc_cpu (seconds in
-                                 # solve_batch), mpc_problems, mpc_iterations, mpc_second_starts (summed over workers)
+    timing: dict                 # seconds of this call in env / policy / update / total, and the CPU seconds of this
+                                 # process (every thread; worker processes not included) in each: env_cpu / policy_cpu /
+                                 # update_cpu / total_cpu; batched: mpc_cpu (seconds in solve_batch), mpc_cpu_seconds
+                                 # (CPU seconds in it), mpc_problems, mpc_iterations, mpc_second_starts (summed over workers)
 
 
 class Trainer:
@@ -101,7 +103,8 @@ class Trainer:
         self.window: collections.deque[int] = collections.deque(maxlen=self.tcfg.success_window)
         self.last_checkpoint: pathlib.Path | None = None
         self._last_ckpt_episodes = 0
-        self.timing = {"env": 0.0, "policy": 0.0, "update": 0.0, "total": 0.0}
+        self.timing = {"env": 0.0, "policy": 0.0, "update": 0.0, "total": 0.0,
+                       "env_cpu": 0.0, "policy_cpu": 0.0, "update_cpu": 0.0, "total_cpu": 0.0}
         self._wall_offset = 0.0      # wall_s of the last kept episode when resuming
 
     # ------------------------------------------------------------------ public
@@ -251,25 +254,27 @@ class Trainer:
         hist = self.history_path.open("a")
         t0 = time.monotonic() - self._wall_offset
         tm = self.timing
-        p0 = time.perf_counter()
+        p0, q0 = time.perf_counter(), time.process_time()
         try:
             while self.episodes < budget:
                 buf.reset()
                 done_budget = False
                 for _ in range(T):
-                    c0 = time.perf_counter()
+                    c0, d0 = time.perf_counter(), time.process_time()
                     obs_n = agent.normalize_obs(obs, update=True)
                     actions, logp, values = agent.act(obs_n)
-                    c1 = time.perf_counter()
+                    c1, d1 = time.perf_counter(), time.process_time()
                     nxt, rew, term, trunc, infos = venv.step(actions)
                     # after every env step: a numba parallel call in it (the batched NMPC) sets
                     # the OpenMP thread count torch's operators read, and the next forwards (the
                     # policy's, the value bootstrap's) would run on every core, waking idle
                     # threads for tiny ops
                     torch.set_num_threads(self.tcfg.torch_threads)
-                    c2 = time.perf_counter()
+                    c2, d2 = time.perf_counter(), time.process_time()
                     tm["policy"] += c1 - c0
                     tm["env"] += c2 - c1
+                    tm["policy_cpu"] += d1 - d0
+                    tm["env_cpu"] += d2 - d1
                     rew = np.asarray(rew, np.float64)
                     if not np.all(np.isfinite(rew)):
                         raise ValueError(f"env returned a non-finite reward: {rew}")
@@ -288,22 +293,25 @@ class Trainer:
                                                  hist, writer, bar, time.monotonic() - t0)
                             done_budget = self.episodes >= budget
                         if not done_budget:
-                            c3 = time.perf_counter()
+                            c3, d3 = time.perf_counter(), time.process_time()
                             nxt[i] = self._new_episode(venv, i, slots)
                             tm["env"] += time.perf_counter() - c3
+                            tm["env_cpu"] += time.process_time() - d3
                     obs = nxt
                     if done_budget:
                         break
                 if buf.size * N >= 2:
-                    c4 = time.perf_counter()
+                    c4, d4 = time.perf_counter(), time.process_time()
                     agent.set_progress(self.episodes / budget)
                     self._update(buf, obs, writer)
                     tm["update"] += time.perf_counter() - c4
+                    tm["update_cpu"] += time.process_time() - d4
                 if (self.episodes - self._last_ckpt_episodes >= self.tcfg.checkpoint_every
                         and self.episodes < budget):
                     self.save()
         finally:
             tm["total"] += time.perf_counter() - p0
+            tm["total_cpu"] += time.process_time() - q0
             if callable(getattr(venv, "mpc_stats", None)):
                 mst = venv.mpc_stats()               # summed over all worker processes
                 tm["mpc_cpu"] = mst["seconds"]
