@@ -7,6 +7,11 @@ the table prints episodes/s, world ticks/s, decisions/s, the time split (env ste
 forward, PPO update, bookkeeping), peak memory, and each row's ratio to the first row. Prints
 figures; asserts nothing. Numbers on a shared machine are noisy: repeat with --repeat.
 
+Each row also prints its CPU time per episode (every thread of the run's process and of its env
+worker processes) and the ceiling that sets: the episodes/s of every core busy with that work, which
+no scheduling of the same work can beat. The closing line says what ``--target-ratio`` times the
+first row (default 10) asks of the CPU per episode on this machine, beside what the last row spends.
+
 ``--ref REF`` adds a row (first in the table, so the ratios are to it) that runs commit REF's own
 ``bimacppo-train`` exactly as a user ran it then: the commit's tree is exported from this
 repository's git history to a temporary folder, its packages go first on PYTHONPATH, and its
@@ -66,8 +71,18 @@ CONFIGS = {
 # the gate runs, to convergence)
 MPC = {"batched-uncut": {"fast": {"second_start_cut": None, "steer_bound_other_side": False}}}
 
-CHILD = r"""
+# both children start here: the CPU time of this process (every thread) and of its reaped children
+# (env worker processes), so a row can say what its work per episode costs the machine
+CLOCK = r"""
 import json, resource, sys, time
+
+
+def cpu_now():
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
+"""
+
+CHILD = r"""
 from bimacppo_curriculum import make_scheduler
 from bimacppo_learning.cli import make_env
 from bimacppo_learning.ppo_config import load_config
@@ -78,32 +93,34 @@ args = json.loads(sys.argv[1])
 env_cfg = EnvConfig.load(args["env_config"])
 pcfg, tcfg = load_config(train={**args["train"], "seed": args["seed"], "progress_bar": False, "tensorboard": False})
 sched = make_scheduler("bimab", seed=args["seed"], total_episodes=args["episodes"])
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), cpu_now()
 mpc = MPCConfig.load().replace(**args["mpc"])
 res = Trainer(make_env("dual_lane_4way", env_cfg, "fast", mpc_config=mpc), sched, args["run_dir"], pcfg, tcfg).train(args["episodes"])
 wall = time.perf_counter() - t0
 recs = [json.loads(l) for l in open(res.history_path)]
 episodes, decisions, timing = res.episodes, res.env_steps, res.timing
+# processes stepping the envs (1: this one)
+workers = {"batched": tcfg.batch_workers, "async": tcfg.num_envs}.get(tcfg.vector, 1)
 """
 
 # a commit's own trainer CLI: imports happen before the clock starts, as in CHILD
 REF_CHILD = r"""
-import importlib, json, resource, sys, time
+import importlib
 args = json.loads(sys.argv[1])
 module, func = args["entry"].split(":")
 main = getattr(importlib.import_module(module), func)
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), cpu_now()
 rc = main(args["argv"])
 wall = time.perf_counter() - t0
 if rc:
     sys.exit(f"the trainer exited with {rc}")
 recs = [json.loads(l) for l in open(args["history"])]
-episodes, decisions, timing = len(recs), recs[-1]["env_steps"] if recs else 0, None
+episodes, decisions, timing, workers = len(recs), recs[-1]["env_steps"] if recs else 0, None, None
 """
 # both children end here: the RESULT line from the run's history (ticks only where every record has them)
 RESULT = r"""
 last = recs[-200:]
-print("RESULT " + json.dumps({"wall": wall, "episodes": episodes, "decisions": decisions,
+print("RESULT " + json.dumps({"wall": wall, "cpu": cpu_now() - c0, "workers": workers, "episodes": episodes, "decisions": decisions,
                              "ticks": sum(r["ticks"] for r in recs) if all("ticks" in r for r in recs) else None,
                              "timing": timing, "success": sum(r["outcome"] == "success" for r in last) / max(1, len(last)),
                              "rss_main_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -165,7 +182,7 @@ def run_ref(ref: str, episodes: int, seed: int, env_config: str, copies: int = 1
             arg = json.dumps({"entry": entry, "history": os.path.join(run_dir, "history.jsonl"),
                               "argv": ["--episodes", str(n), "--seed", str(seed), "--env-config", cfg,
                                        "--run-dir", run_dir, "--no-progress"]})
-            return subprocess.Popen([sys.executable, "-c", REF_CHILD + RESULT, arg], stdout=subprocess.PIPE,
+            return subprocess.Popen([sys.executable, "-c", CLOCK + REF_CHILD + RESULT, arg], stdout=subprocess.PIPE,
                                     stderr=subprocess.PIPE, text=True, env=env, cwd=tmp)
 
         collect(f"{ref} (warm-up)", [start(os.path.join(tmp, "warm"), 1)])
@@ -216,7 +233,7 @@ def run_many(name: str, episodes: int, seed: int, env_config: str, copies: int =
         for c in range(copies):
             arg = json.dumps({"train": CONFIGS[name], "mpc": mpc_overrides(name, mpc_threads), "episodes": episodes, "seed": seed,
                               "env_config": env_config, "run_dir": os.path.join(tmp, str(c))})
-            procs.append(subprocess.Popen([sys.executable, "-c", CHILD + RESULT, arg], stdout=subprocess.PIPE,
+            procs.append(subprocess.Popen([sys.executable, "-c", CLOCK + CHILD + RESULT, arg], stdout=subprocess.PIPE,
                                           stderr=subprocess.PIPE, text=True, env=env))
         return collect(name, procs)
 
@@ -235,6 +252,8 @@ def main() -> int:
                     help="idle OpenMP threads spin N iterations, then sleep (OMP_WAIT_POLICY=ACTIVE, GOMP_SPINCOUNT=N)")
     ap.add_argument("--mpc-threads", type=int, default=None, metavar="K",
                     help="threads of every configuration's NMPC batch (fast.threads; 0 = one per core)")
+    ap.add_argument("--target-ratio", type=float, default=10.0, metavar="X",
+                    help="the closing line says what X times the first row's episodes/s asks of the CPU (default 10)")
     ap.add_argument("--ref", action="append", default=[], metavar="REF",
                     help="also run commit REF's own bimacppo-train with its defaults (first rows; with --ref the configurations run only where --only names them)")
     args = ap.parse_args()
@@ -245,6 +264,8 @@ def main() -> int:
             ap.error(f"--omp-spin must be >= 0, got {args.omp_spin}")
         if args.omp_wait == "passive":
             ap.error("--omp-spin sets OMP_WAIT_POLICY=ACTIVE; it cannot go with --omp-wait passive")
+    if not args.target_ratio > 0.0:
+        ap.error(f"--target-ratio must be > 0, got {args.target_ratio}")
     if args.mpc_threads is not None and args.mpc_threads < 0:
         ap.error(f"--mpc-threads must be >= 0, got {args.mpc_threads}")
     names = [("ref", r) for r in args.ref] + [("config", n) for n in (args.only or ([] if args.ref else list(CONFIGS)))]
@@ -275,16 +296,56 @@ def main() -> int:
     print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
           f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}; "
           f"{args.concurrent} cop{'y' if args.concurrent == 1 else 'ies'} at once, OMP_WAIT_POLICY {wait}{threads}\n")
-    print("| path | train config (and NMPC overrides) | episodes/s | all copies: episodes/s | ticks/s | decisions/s | ratio | env s | of which NMPC s (solve_batch time, summed over processes) | "
+    cores = os.cpu_count() or 1
+    print("| path | train config (and NMPC overrides) | episodes/s | all copies: episodes/s | ticks/s | decisions/s | ratio | "
+          f"CPU ms per episode (every thread and worker) | ceiling on {cores} cores: episodes/s | "
+          "CPU ms per episode: NMPC / rest of env / policy / update / other (in-process rows) | env s | "
+          "of which NMPC s (solve_batch time, summed over processes) | "
           "NMPC per problem: µs of solve_batch wall time / SQP iterations / second starts | "
           "policy s | update s | other s | peak RSS main / largest worker (MiB) | success, last 200 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for kind, name, r in rows:
-        print(table_row(kind, name, r, base, args.mpc_threads))
+        print(table_row(kind, name, r, base, args.mpc_threads, cores))
+    print("\n" + target_line(base, rows[-1][2], args.target_ratio, cores))
     return 0
 
 
-def table_row(kind: str, name: str, r: dict, base: dict, mpc_threads: int | None = None) -> str:
+def cpu_per_episode(r: dict) -> float:
+    """Seconds of CPU (all threads of the run's process and of its env workers) per episode."""
+    return r["cpu"] / r["episodes"]
+
+
+def cpu_split(r: dict) -> dict | None:
+    """A row's CPU seconds per episode by part (NMPC, the rest of env stepping, policy forward, PPO
+    update, other: set-up, bookkeeping), where the whole run is in one process (the trainer times
+    the parts in its own process, so worker processes' CPU would land in no part)."""
+    tm = r.get("timing")
+    if not tm or "total_cpu" not in tm or "mpc_cpu_seconds" not in tm or r.get("workers") != 1:
+        return None
+    n = r["episodes"]
+    parts = {"nmpc": tm["mpc_cpu_seconds"], "env": tm["env_cpu"] - tm["mpc_cpu_seconds"],
+             "policy": tm["policy_cpu"], "update": tm["update_cpu"]}
+    parts["other"] = r["cpu"] - sum(parts.values())
+    return {k: v / n for k, v in parts.items()}
+
+
+def target_line(base: dict, last: dict, ratio: float, cores: int) -> str:
+    """What ``ratio`` times the first row's episodes/s asks of the CPU, beside what the last row
+    spends: the ceiling is the rate at which ``cores`` fully busy cores finish episodes of a row's
+    work, so no scheduling of that work beats it."""
+    want = ratio * base["episodes"] / base["wall"]
+    budget = cores / want
+    have = cpu_per_episode(last)
+    split = cpu_split(last)
+    fixed = ("" if split is None else
+             f"; its NMPC and PPO update alone spend {1e3 * (split['nmpc'] + split['update']):.1f} ms "
+             f"({(split['nmpc'] + split['update']) / budget:.2f}x the budget)")
+    return (f"{ratio:g}x the first row is {want:.1f} episodes/s: on {cores} cores at most {1e3 * budget:.1f} ms of CPU "
+            f"per episode; the last row spends {1e3 * have:.1f} ms ({have / budget:.2f}x that), so its ceiling is "
+            f"{cores / have:.1f} episodes/s, {cores / have / (base['episodes'] / base['wall']):.2f}x the first row{fixed}")
+
+
+def table_row(kind: str, name: str, r: dict, base: dict, mpc_threads: int | None = None, cores: int = 1) -> str:
     """One markdown row; a --ref row (``kind`` "ref") has no time split, and no ticks where its
     history does not record them."""
     tm = r["timing"]
@@ -306,8 +367,11 @@ def table_row(kind: str, name: str, r: dict, base: dict, mpc_threads: int | None
     else:
         over = mpc_overrides(name, mpc_threads)
         label, conf = name, json.dumps(CONFIGS[name]) + (f" NMPC {json.dumps(over)}" if over else "")
+    parts = cpu_split(r)
+    parts = "-" if parts is None else " / ".join(f"{1e3 * parts[k]:.1f}" for k in ("nmpc", "env", "policy", "update", "other"))
     return (f"| {label} | {conf} | {eps:.1f}{spread} | {r['aggregate']:.1f} | {ticks} | "
-            f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x {split} | "
+            f"{r['decisions'] / r['wall']:.0f} | {eps / (base['episodes'] / base['wall']):.2f}x | "
+            f"{1e3 * cpu_per_episode(r):.1f} | {cores / cpu_per_episode(r):.1f} | {parts} {split} | "
             f"{r['rss_main_mib']:.0f} / {r['rss_worker_mib']:.0f} | {100 * r['success']:.0f}% |")
 
 

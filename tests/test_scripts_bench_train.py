@@ -50,7 +50,7 @@ def test_bad_spin_and_thread_options_are_one_usage_error():
 
 
 FAKE_CLI = '''
-import json, pathlib, sys
+import json, pathlib, subprocess, sys
 
 
 def train_main(argv):
@@ -64,7 +64,12 @@ def train_main(argv):
         for e in range(n):
             f.write(json.dumps({"episode": e + 1, "env_steps": 7 * (e + 1), "outcome": "success" if e % 2 else "timeout"}) + "\\n")
     print(json.dumps({"module": __file__}), file=sys.stderr)
+    # a worker process's CPU time counts towards the run's (it is reaped before the run ends)
+    subprocess.run([sys.executable, "-c", BURN], check=True)
     return 0
+
+
+BURN = "import time\\nt = time.process_time()\\nwhile time.process_time() - t < 0.3:\\n    pass"
 '''
 
 
@@ -95,15 +100,19 @@ def test_a_ref_row_runs_the_commits_own_trainer_from_its_exported_tree(tmp_path)
     for r in res:
         assert r["episodes"] == 6 and r["decisions"] == 42 and r["ticks"] is None and r["timing"] is None
         assert r["success"] == 0.5 and r["wall"] > 0.0
+        assert r["cpu"] >= 0.3
     head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True,
                           text=True, check=True).stdout.strip()
     assert all(r["commit"] == head for r in res)
     r = {**res[0], "aggregate": 2.0, "eps_all": [1.0]}
-    row = mod.table_row("ref", "HEAD", r, r)
+    row = mod.table_row("ref", "HEAD", r, r, cores=2)
     cells = [c.strip() for c in row.strip().strip("|").split("|")]
     # a symbolic ref is shown with the commit it resolved to; a hash is shown once
     assert cells[0] == f"bimacppo-train at HEAD = {head}" and cells[4] == "-" and cells[6] == "1.00x"
-    assert len(cells) == 15 and cells[-1] == "50%"
+    assert float(cells[7]) == pytest.approx(1e3 * r["cpu"] / 6, abs=0.06)
+    assert float(cells[8]) == pytest.approx(2 * 6 / r["cpu"], abs=0.06)
+    # a ref row's trainer times no parts, so it has no CPU split
+    assert cells[9] == "-" and len(cells) == 18 and cells[-1] == "50%"
     assert mod.table_row("ref", head[:5], r, r).startswith(f"| bimacppo-train at {head[:5]} |")
 
 
@@ -127,3 +136,28 @@ def test_a_ref_that_cannot_run_is_named(tmp_path):
     bad = subprocess.run([sys.executable, str(REPO / "scripts/bench_train.py"), "--ref", "no-such-ref-xyz"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--ref no-such-ref-xyz: not a commit" in bad.stderr, bad.stderr
+
+
+def test_the_closing_line_prices_the_target_in_cpu_per_episode():
+    from conftest import load_script
+
+    mod = load_script("bench_train")
+    base = {"episodes": 100, "wall": 10.0, "cpu": 15.0}     # 10 episodes/s
+    last = {"episodes": 100, "wall": 4.0, "cpu": 6.0}       # 60 ms of CPU per episode
+    line = mod.target_line(base, last, 10.0, 2)
+    # 10x is 100 episodes/s; two cores then give each episode 20 ms; 60 ms is 3x that, and two
+    # cores busy with 60 ms episodes finish 33.3 per second, 3.33x the first row
+    assert line.startswith("10x the first row is 100.0 episodes/s: on 2 cores at most 20.0 ms of CPU per episode")
+    assert "the last row spends 60.0 ms (3.00x that)" in line and line.endswith("33.3 episodes/s, 3.33x the first row")
+    assert "NMPC and PPO update" not in line         # a row without a timed split (a --ref row) names no parts
+    # an in-process row's parts: the NMPC out of env stepping, the rest of the run's CPU as other
+    timing = {"env_cpu": 3.0, "mpc_cpu_seconds": 2.0, "policy_cpu": 0.5, "update_cpu": 1.5, "total_cpu": 5.5}
+    split = mod.cpu_split({**last, "timing": timing, "workers": 1})
+    assert split == pytest.approx({"nmpc": 0.02, "env": 0.01, "policy": 0.005, "update": 0.015, "other": 0.01})
+    line = mod.target_line(base, {**last, "timing": timing, "workers": 1}, 10.0, 2)
+    assert line.endswith("its NMPC and PPO update alone spend 35.0 ms (1.75x the budget)")
+    # where envs step in worker processes, the process's own parts miss their CPU: no split
+    assert mod.cpu_split({**last, "timing": timing, "workers": 2}) is None
+    bad = subprocess.run([sys.executable, str(REPO / "scripts/bench_train.py"), "--target-ratio", "0"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--target-ratio must be > 0" in bad.stderr
