@@ -293,10 +293,10 @@ def main() -> int:
     wait = ("active, GOMP_SPINCOUNT " + str(args.omp_spin) if args.omp_spin is not None
             else args.omp_wait or os.environ.get("OMP_WAIT_POLICY") or "passive (package default)")
     threads = "" if args.mpc_threads is None else f", NMPC threads {args.mpc_threads}"
-    print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
-          f"env config {pathlib.Path(args.env_config).name}, {os.cpu_count()} cores; median of {args.repeat}; "
-          f"{args.concurrent} cop{'y' if args.concurrent == 1 else 'ies'} at once, OMP_WAIT_POLICY {wait}{threads}\n")
     cores = os.cpu_count() or 1
+    print(f"\n{args.episodes} episodes of BiM-ACPPO training from scratch, seed {args.seed}, "
+          f"env config {pathlib.Path(args.env_config).name}, {cores} cores; median of {args.repeat}; "
+          f"{args.concurrent} cop{'y' if args.concurrent == 1 else 'ies'} at once, OMP_WAIT_POLICY {wait}{threads}\n")
     print("| path | train config (and NMPC overrides) | episodes/s | all copies: episodes/s | ticks/s | decisions/s | ratio | "
           f"CPU ms per episode (every thread and worker) | ceiling on {cores} cores: episodes/s | "
           "CPU ms per episode: NMPC / rest of env / policy / update / other (in-process rows) | env s | "
@@ -356,9 +356,9 @@ def table_row(kind: str, name: str, r: dict, base: dict, mpc_threads: int | None
         split = "| - | - | - | - | - | -"
     else:
         other = tm["total"] - tm["env"] - tm["policy"] - tm["update"]
-        mpc = f"{tm['mpc_cpu']:.1f}" if "mpc_cpu" in tm else "-"
+        mpc = f"{tm['mpc_seconds']:.1f}" if "mpc_seconds" in tm else "-"
         n = tm.get("mpc_problems", 0)
-        per = (f"{1e6 * tm['mpc_cpu'] / n:.0f} / {tm['mpc_iterations'] / n:.2f} / {100 * tm['mpc_second_starts'] / n:.1f} %"
+        per = (f"{1e6 * tm['mpc_seconds'] / n:.0f} / {tm['mpc_iterations'] / n:.2f} / {100 * tm['mpc_second_starts'] / n:.1f} %"
                if n else "-")
         split = f"| {tm['env']:.1f} | {mpc} | {per} | {tm['policy']:.1f} | {tm['update']:.1f} | {other:.1f}"
     if kind == "ref":

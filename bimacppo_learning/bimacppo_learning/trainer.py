@@ -51,8 +51,9 @@ class TrainResult:
     last_checkpoint: pathlib.Path | None
     timing: dict                 # seconds of this call in env / policy / update / total, and the CPU seconds of this
                                  # process (every thread; worker processes not included) in each: env_cpu / policy_cpu /
-                                 # update_cpu / total_cpu; batched: mpc_cpu (seconds in solve_batch), mpc_cpu_seconds
-                                 # (CPU seconds in it), mpc_problems, mpc_iterations, mpc_second_starts (summed over workers)
+                                 # update_cpu / total_cpu; batched: mpc_seconds (wall seconds in solve_batch),
+                                 # mpc_cpu_seconds (CPU seconds in it), mpc_problems, mpc_iterations, mpc_second_starts
+                                 # (summed over workers)
 
 
 class Trainer:
@@ -314,8 +315,7 @@ class Trainer:
             tm["total_cpu"] += time.process_time() - q0
             if callable(getattr(venv, "mpc_stats", None)):
                 mst = venv.mpc_stats()               # summed over all worker processes
-                tm["mpc_cpu"] = mst["seconds"]
-                tm.update({f"mpc_{k}": v for k, v in mst.items() if k != "seconds"})
+                tm.update({f"mpc_{k}": v for k, v in mst.items()})
             hist.close()
 
     def _finish_episode(self, info: Mapping[str, Any], slot: dict, terminated: bool, hist,
